@@ -1,0 +1,154 @@
+"""Rigid poses of the head (and of colliders): rotation, translation and their velocities."""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Optional
+
+import torch
+
+__all__ = ["Pose", "axis_angle_to_matrix", "matrix_to_axis_angle"]
+
+
+def axis_angle_to_matrix(rotvec: torch.Tensor) -> torch.Tensor:
+    """Rodrigues' formula. rotvec: (..., 3) radians (axis × angle) → (..., 3, 3)."""
+    theta2 = (rotvec * rotvec).sum(-1, keepdim=True)
+    theta = torch.sqrt(theta2.clamp_min(1e-300) if rotvec.dtype == torch.float64 else theta2.clamp_min(1e-30))
+    small = theta2 < 1e-12
+    # sin(θ)/θ and (1 − cos θ)/θ² with Taylor fallbacks near 0 (finite gradients too)
+    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
+    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2.clamp_min(1e-30))
+    x, y, z = rotvec.unbind(-1)
+    zero = torch.zeros_like(x)
+    k = torch.stack((zero, -z, y, z, zero, -x, -y, x, zero), -1).reshape(rotvec.shape[:-1] + (3, 3))
+    eye = torch.eye(3, dtype=rotvec.dtype, device=rotvec.device).expand_as(k)
+    return eye + a[..., None] * k + b[..., None] * (k @ k)
+
+
+def matrix_to_axis_angle(rot: torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`axis_angle_to_matrix` for angles in [0, π). rot: (..., 3, 3) → (..., 3)."""
+    w = torch.stack(
+        (rot[..., 2, 1] - rot[..., 1, 2], rot[..., 0, 2] - rot[..., 2, 0], rot[..., 1, 0] - rot[..., 0, 1]), -1
+    )
+    cos = ((rot.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)
+    sin = 0.5 * w.norm(dim=-1)
+    theta = torch.atan2(sin, cos)
+    scale = torch.where(sin > 1e-7, theta / (2 * sin.clamp_min(1e-30)), 0.5 + theta * theta / 12)
+    return w * scale[..., None]
+
+
+@dataclass(frozen=True)
+class Pose:
+    """A rigid pose with its velocity (world frame), for the head or a collider.
+
+    A point ``p`` of the body's local frame sits at ``R p + T`` in the world and moves with
+    the rigid-body velocity ``linear_velocity + angular_velocity × (x − T)``.
+
+    Fields (every tensor may carry the same leading batch dims ``...``):
+        rotation: (..., 3, 3) rotation matrix R.
+        translation: (..., 3) metres, T.
+        linear_velocity: (..., 3) m/s, velocity of the frame's origin; ``None`` = unknown
+            (the simulator then takes it from the change of pose over the frame).
+        angular_velocity: (..., 3) rad/s, world frame; ``None`` = unknown (likewise).
+    """
+
+    rotation: torch.Tensor
+    translation: torch.Tensor
+    linear_velocity: Optional[torch.Tensor] = None
+    angular_velocity: Optional[torch.Tensor] = None
+
+    # -- construction ------------------------------------------------------------------
+    @staticmethod
+    def identity(device=None, dtype=torch.float32) -> "Pose":
+        z = torch.zeros(3, device=device, dtype=dtype)
+        return Pose(torch.eye(3, device=device, dtype=dtype), z, z.clone(), z.clone())
+
+    @staticmethod
+    def from_rotvec(rotvec, translation=(0.0, 0.0, 0.0), linear_velocity=None, angular_velocity=None,
+                    device=None, dtype=torch.float32) -> "Pose":
+        """Pose from an axis-angle vector (radians) and a translation (metres)."""
+        as_t = lambda a: None if a is None else torch.as_tensor(a, device=device, dtype=dtype)  # noqa: E731
+        return Pose(axis_angle_to_matrix(as_t(rotvec)), as_t(translation), as_t(linear_velocity),
+                    as_t(angular_velocity))
+
+    def to(self, device=None, dtype=None) -> "Pose":
+        f = lambda t: None if t is None else t.to(device=device, dtype=dtype)  # noqa: E731
+        return Pose(f(self.rotation), f(self.translation), f(self.linear_velocity), f(self.angular_velocity))
+
+    def with_velocity(self, linear_velocity, angular_velocity) -> "Pose":
+        return replace(self, linear_velocity=linear_velocity, angular_velocity=angular_velocity)
+
+    @property
+    def has_velocity(self) -> bool:
+        return self.linear_velocity is not None and self.angular_velocity is not None
+
+    # -- maps --------------------------------------------------------------------------
+    def to_world(self, p: torch.Tensor) -> torch.Tensor:
+        """Local points (..., K, 3) (K any number of points) → world points (..., K, 3)."""
+        r, t = self._bcast(p)
+        return torch.einsum("...ij,...kj->...ki", r, p) + t[..., None, :]
+
+    def to_local(self, x: torch.Tensor) -> torch.Tensor:
+        """World points (..., K, 3) → local points (..., K, 3)."""
+        r, t = self._bcast(x)
+        return torch.einsum("...ji,...kj->...ki", r, x - t[..., None, :])
+
+    def rotate(self, d: torch.Tensor) -> torch.Tensor:
+        """Local directions (..., K, 3) → world directions (no translation)."""
+        r, _ = self._bcast(d)
+        return torch.einsum("...ij,...kj->...ki", r, d)
+
+    def unrotate(self, d: torch.Tensor) -> torch.Tensor:
+        """World directions (..., K, 3) → local directions."""
+        r, _ = self._bcast(d)
+        return torch.einsum("...ji,...kj->...ki", r, d)
+
+    def velocity_at(self, x: torch.Tensor) -> torch.Tensor:
+        """Rigid-body velocity (..., K, 3) m/s at world points x (..., K, 3); zero if unknown."""
+        if not self.has_velocity:
+            return torch.zeros_like(x)
+        _, t = self._bcast(x)
+        v, w = self.linear_velocity, self.angular_velocity
+        while v.dim() < t.dim():
+            v, w = v.unsqueeze(0), w.unsqueeze(0)
+        return v[..., None, :] + torch.cross(w[..., None, :].expand_as(x), x - t[..., None, :], dim=-1)
+
+    def _bcast(self, p: torch.Tensor):
+        r, t = self.rotation.to(p.dtype), self.translation.to(p.dtype)
+        # pose batch dims must be a suffix-compatible prefix of p's leading dims
+        extra = p.dim() - 2 - (r.dim() - 2)
+        if extra < 0:
+            raise ValueError(f"pose has batch shape {tuple(r.shape[:-2])} but points have shape {tuple(p.shape)}")
+        for _ in range(extra):
+            r, t = r.unsqueeze(-3), t.unsqueeze(-2)
+        return r, t
+
+    # -- motion over a frame ----------------------------------------------------------
+    def relative_rotvec(self, other: "Pose") -> torch.Tensor:
+        """Axis-angle (world frame) of the rotation taking this pose's R to ``other``'s."""
+        return matrix_to_axis_angle(other.rotation @ self.rotation.transpose(-1, -2))
+
+    def interpolate(self, other: "Pose", s: float, dt: float) -> "Pose":
+        """Pose at fraction ``s`` ∈ [0, 1] of a frame of length ``dt`` from self to other.
+
+        Rotation: constant angular velocity (slerp). Translation: cubic Hermite when both
+        ends carry velocities (so substeps see the motion's own accelerations), else linear.
+        Velocities at s are interpolated linearly (or derived from the change of pose).
+        """
+        if s <= 0.0:
+            return self
+        if s >= 1.0:
+            return other
+        rv = self.relative_rotvec(other)
+        rot = axis_angle_to_matrix(rv * s) @ self.rotation
+        p0, p1 = self.translation, other.translation
+        if self.has_velocity and other.has_velocity:
+            v0, v1 = self.linear_velocity * dt, other.linear_velocity * dt
+            h00, h10 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s
+            h01, h11 = -2 * s**3 + 3 * s**2, s**3 - s**2
+            trans = h00 * p0 + h10 * v0 + h01 * p1 + h11 * v1
+            lin = (1 - s) * self.linear_velocity + s * other.linear_velocity
+            ang = (1 - s) * self.angular_velocity + s * other.angular_velocity
+        else:
+            trans = (1 - s) * p0 + s * p1
+            lin, ang = (p1 - p0) / dt, rv / dt
+        return Pose(rot, trans, lin, ang)
