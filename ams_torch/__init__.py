@@ -1,2 +1,20 @@
-"""ams_torch: dense hair simulation with the Augmented Mass-Spring model in PyTorch."""
+"""ams_torch: dense hair simulation with the Augmented Mass-Spring model in PyTorch.
+
+The public API is small:
+
+- :class:`Params`: the model's parameters (SI units).
+- :class:`Simulator`: ``Simulator(rest_positions, params).initial_state()`` / ``.step(state, pose)``.
+- :class:`Pose`: a rigid head pose with its velocities.
+- :func:`solve_banded`: the batched banded block-Cholesky strand solve.
+- :class:`State`, :class:`SimulationDiverged`.
+"""
+from .integrator import SimulationDiverged
+from .model import State
+from .ops import solve_banded
+from .params import Params
+from .pose import Pose
+from .simulator import Simulator
+
 __version__ = "0.1.0"
+
+__all__ = ["Params", "Simulator", "Pose", "State", "solve_banded", "SimulationDiverged", "__version__"]

@@ -1,0 +1,232 @@
+"""Time integration of one frame (SPEC §4, paper Algorithm 1) as pure functions.
+
+``step(model, params, state, pose)`` returns a new :class:`~ams_torch.model.State`; nothing
+is modified in place. Per frame of length Δt with M substeps (Δt' = Δt/M), each substep
+assembles and solves the linearised backward-Euler system in its symmetric form
+
+    [(m_i + Δt'γ_i) I + Δt'² Σ_j κ_ij D_ij + Δt'² H_i] v_i − Σ_j Δt'² κ_ij D_ij v_j
+        = m_i v_iⁿ + Δt' (f_elastic + f_biphasic + f_ext) + Δt'² (ghost-velocity terms)
+
+then the positions are advanced; after the substeps come inextensibility and the optional
+stages (hair–hair, collisions) in the order of SPEC §4.
+"""
+from __future__ import annotations
+
+from typing import Callable, Optional, Sequence, Union
+
+import torch
+import torch.nn.functional as F
+
+from . import forces
+from .constraints import follow_the_leader
+from .model import Model, State
+from .ops import solve_banded
+from .params import Params
+from .pose import Pose
+from .solver import banded_matvec
+
+__all__ = ["assemble_system", "substep", "step", "SimulationDiverged", "check_state", "resolve_pose"]
+
+ExternalForce = Union[None, torch.Tensor, Callable[[torch.Tensor, torch.Tensor, float], torch.Tensor]]
+# a stage: (x, v, pose_at_end_of_frame, dt, state_before) -> (x, v)
+Stage = Callable[[torch.Tensor, torch.Tensor, Pose, float, State], tuple]
+
+
+class SimulationDiverged(FloatingPointError):
+    """The state became non-finite or exploded. ``.frame`` and ``.strands`` say where."""
+
+    def __init__(self, message: str, frame: int, strands: list):
+        super().__init__(message)
+        self.frame = frame
+        self.strands = strands
+
+
+def _is_zero(v) -> bool:
+    return (not isinstance(v, torch.Tensor)) and float(v) == 0.0
+
+
+def _per_particle(k, like: torch.Tensor):
+    """A stiffness that may be a tensor (S, 1)/(S, N), shaped to multiply (..., S, N, 3, 3)."""
+    k = torch.as_tensor(k, dtype=like.dtype, device=like.device)
+    return k[..., None, None] if k.dim() > 0 else k
+
+
+def _pad_n(t: torch.Tensor, before: int, after: int) -> torch.Tensor:
+    """Zero-pad (..., S, M, 3, 3) along the particle dim M."""
+    return F.pad(t, (0, 0, 0, 0, before, after))
+
+
+def assemble_system(model: Model, params: Params, x: torch.Tensor, v: torch.Tensor,
+                    ghost: torch.Tensor, ghost_velocity: torch.Tensor, pin_velocity: torch.Tensor,
+                    h: float, external_force: Optional[torch.Tensor] = None):
+    """Assemble one substep's SPD block-heptadiagonal system for every strand.
+
+    Args:
+        x, v: (..., S, N, 3) positions (m) and velocities (m/s) at the substep start.
+        ghost: (..., S, N, 3) m, ghost positions y at the substep start (world).
+        ghost_velocity: (..., S, N, 3) m/s, ghost velocities w over the substep.
+        pin_velocity: (..., S, N, 3) m/s, prescribed velocities (read on pinned particles).
+        h: substep length Δt', s.
+        external_force: (..., S, N, 3) N or None.
+    Returns:
+        blocks: (..., S, N, 4, 3, 3) lower band, ``blocks[..., i, k] = A[i, i-k]``, kg.
+        rhs: (..., S, N, 3), kg·m/s.
+    """
+    m = model.particle_mass
+    eye = torch.eye(3, dtype=x.dtype, device=x.device)
+    gamma = params.drag * m if not _is_zero(params.drag) else None
+
+    force = forces.gravity_force(m, model.gravity).expand_as(x)
+    if external_force is not None:
+        force = force + external_force
+    m_eff = m + h * gamma if gamma is not None else m
+    diag = m_eff[..., None, None] * eye
+    offdiag = []
+    scales = (1.0, params.bend_scale, params.torsion_scale)
+    for k in (1, 2, 3):
+        kappa = params.stretch_stiffness * scales[k - 1]
+        f, stiff = forces.spring_forces(x, model.rest_lengths[k - 1], kappa, k)
+        force = force + f
+        hk = (h * h) * stiff  # (..., S, N-k, 3, 3)
+        diag = diag + _pad_n(hk, 0, k) + _pad_n(hk, k, 0)
+        offdiag.append(_pad_n(-hk, k, 0))
+    rhs = m[..., None] * v
+
+    if not _is_zero(params.integrity_stiffness):
+        kappa_i = params.integrity_stiffness
+        force = force + forces.integrity_force(x, ghost, kappa_i)
+        ki = _per_particle(kappa_i, x)
+        diag = diag + (h * h) * ki * eye
+        rhs = rhs + (h * h) * (ki[..., 0] if ki.dim() > 0 else ki) * ghost_velocity
+    if not _is_zero(params.angular_stiffness):
+        f_a, tangent = forces.angular_force(x, ghost, params.angular_stiffness)
+        force = force + f_a
+        if params.implicit_angular:
+            ht = (h * h) * tangent  # acts on particle i+1, relative to v_i and the ghost motion
+            rel = v[..., :-1, :] + ghost_velocity[..., 1:, :] - ghost_velocity[..., :-1, :]
+            diag = diag + _pad_n(ht, 1, 0)
+            rhs = rhs + F.pad(torch.einsum("...ij,...j->...i", ht, rel), (0, 0, 1, 0))
+    rhs = rhs + h * force
+    blocks = torch.stack([diag] + [o.expand_as(diag) for o in offdiag], -3)
+
+    pinned = model.pinned
+    if model.num_pinned:
+        # Pinned rows become m_i I v_i = m_i v_pin; their coupling to free particles moves to
+        # the right-hand side, so the matrix stays symmetric positive definite (SPEC §4).
+        pmask = pinned[:, None].to(x.dtype)
+        vp = pin_velocity * pmask
+        rhs = rhs - banded_matvec(blocks, vp)
+        free = ~pinned
+        keep = [free]
+        for k in (1, 2, 3):
+            shifted = torch.cat((torch.zeros(k, dtype=torch.bool, device=x.device), free[:-k]))
+            keep.append(free & shifted)
+        keep = torch.stack(keep, -1)[:, :, None, None].to(x.dtype)  # (N, 4, 1, 1)
+        pin_diag = (m[..., None, None] * eye)[..., None, :, :]
+        pin_diag = F.pad(pin_diag, (0, 0, 0, 0, 0, 3))  # (..., S, N, 4, 3, 3), only k = 0 set
+        blocks = blocks * keep + pin_diag * (pinned[:, None, None, None].to(x.dtype))
+        rhs = torch.where(pinned[:, None], m[..., None] * pin_velocity, rhs)
+    return blocks, rhs
+
+
+def substep(model: Model, params: Params, x, v, ghost, ghost_velocity, pin_velocity, h, external_force=None):
+    """One linearised backward-Euler substep: returns the new velocities (..., S, N, 3) m/s."""
+    blocks, rhs = assemble_system(model, params, x, v, ghost, ghost_velocity, pin_velocity, h, external_force)
+    return solve_banded(blocks, rhs)
+
+
+def resolve_pose(prev: Pose, pose: Optional[Pose], dt: float, device, dtype) -> tuple:
+    """The end-of-frame pose with velocities, and whether substeps use Hermite interpolation.
+
+    ``pose=None`` keeps the head where it is, at rest. A pose without velocities gets the
+    ones implied by the change of pose over the frame (and linear interpolation).
+    """
+    if pose is None:
+        z = torch.zeros_like(prev.translation)
+        return Pose(prev.rotation, prev.translation, z, z.clone()), False
+    pose = pose.to(device=device, dtype=dtype)
+    if pose.has_velocity:
+        return pose, prev.has_velocity
+    lin = (pose.translation - prev.translation) / dt
+    ang = prev.relative_rotvec(pose) / dt
+    return pose.with_velocity(lin, ang), False
+
+
+def _external(external_force: ExternalForce, x, v, t):
+    if external_force is None or isinstance(external_force, torch.Tensor):
+        return external_force
+    return external_force(x, v, t)
+
+
+def check_state(state: State, model: Model, params: Params, where: str = "") -> None:
+    """Divergence guard: raise :class:`SimulationDiverged` naming the frame and first bad strands
+    if any position/velocity is non-finite or moves faster than ``params.max_relative_speed``
+    relative to the head. Costs one host sync."""
+    x, v = state.x, state.v
+    finite = torch.isfinite(x).all(-1).all(-1) & torch.isfinite(v).all(-1).all(-1)
+    rel = torch.nan_to_num(v - state.pose.velocity_at(x), nan=0.0, posinf=0.0, neginf=0.0)
+    fast = rel.norm(dim=-1).amax(-1) > params.max_relative_speed
+    bad = ~finite | fast
+    if bool(bad.any()):
+        idx = torch.nonzero(bad, as_tuple=False).tolist()
+        first = idx[:8]
+        kind = "non-finite positions/velocities" if bool((~finite).any()) else \
+            f"speeds above max_relative_speed = {params.max_relative_speed:g} m/s"
+        raise SimulationDiverged(
+            f"simulation diverged at frame {state.frame}{where}: {kind} in {len(idx)} strand(s); "
+            f"first (index: [scene..., strand]) {first}. Try more substeps, a smaller dt or lower stiffness.",
+            frame=state.frame, strands=idx,
+        )
+
+
+def step(model: Model, params: Params, state: State, pose: Optional[Pose] = None,
+         external_force: ExternalForce = None, stages: Sequence[Stage] = ()) -> State:
+    """Advance one frame (SPEC §4). Pure: returns a new state.
+
+    Args:
+        model, params: the fixed data and parameters.
+        state: the current state (x, v: (..., S, N, 3)).
+        pose: head pose at the end of the frame (None: the head stays still).
+        external_force: (..., S, N, 3) newtons, or a callable ``f(x, v, t) -> force``
+            evaluated at each substep (wind, user forces).
+        stages: callables ``(x, v, pose, dt, state) -> (x, v)`` run after inextensibility
+            in order (hair–hair, then collisions).
+    """
+    dt = params.dt
+    msub = params.substeps
+    h = dt / msub
+    x, v = state.x, state.v
+    if x.shape[-3:] != model.rest_positions.shape or v.shape != x.shape:
+        raise ValueError(f"state.x/v must have shape (..., {model.num_strands}, {model.num_particles}, 3); "
+                         f"got x {tuple(x.shape)}, v {tuple(v.shape)}")
+    pose0 = state.pose
+    pose1, hermite = resolve_pose(pose0, pose, dt, x.device, x.dtype)
+    start = pose0 if hermite else Pose(pose0.rotation, pose0.translation)
+    end = pose1 if hermite else Pose(pose1.rotation, pose1.translation)
+    pinned = model.pinned[:, None]
+    rest = model.rest_positions
+    batch = x.shape[:-3]
+    if batch:
+        rest = rest.expand(batch + rest.shape)
+    pa = start
+    y_a = pa.to_world(state.ghost_rest)
+    for s in range(msub):
+        pb = start.interpolate(end, (s + 1) / msub, dt)
+        y_b = pb.to_world(state.ghost_rest)
+        w = (y_b - y_a) / h
+        target = pb.to_world(rest)
+        pin_v = torch.where(pinned, (target - x) / h, torch.zeros_like(x))
+        f_ext = _external(external_force, x, v, state.time + s * h)
+        v = substep(model, params, x, v, y_a, w, pin_v, h, f_ext)
+        x = torch.where(pinned, target, x + h * v)
+        y_a = y_b
+    if params.inextensibility:
+        fallback = forces.safe_normalize(pose1.rotate(rest[..., 1:, :] - rest[..., :-1, :]))[0]
+        x, v = follow_the_leader(x, v, model.edge_rest_length, model.pinned, dt, params.ftl_damping, fallback)
+    for stage in stages:
+        x, v = stage(x, v, pose1, dt, state)
+    v = torch.where(pinned, pose1.velocity_at(x), v)
+    new = State(x=x, v=v, ghost_rest=state.ghost_rest, pose=pose1, time=state.time + dt, frame=state.frame + 1)
+    if params.check_every and new.frame % params.check_every == 0:
+        check_state(new, model, params)
+    return new

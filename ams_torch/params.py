@@ -1,0 +1,138 @@
+"""Simulation parameters (SI units) and their validation."""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, fields, replace
+from typing import Tuple, Union
+
+import torch
+
+__all__ = ["Params"]
+
+Scalar = Union[float, torch.Tensor]
+
+
+def _min_value(v) -> float:
+    if isinstance(v, torch.Tensor):
+        return float(v.detach().min()) if v.numel() else 0.0
+    return float(v)
+
+
+def _is_finite(v) -> bool:
+    if isinstance(v, torch.Tensor):
+        return bool(torch.isfinite(v.detach()).all())
+    return math.isfinite(float(v))
+
+
+@dataclass
+class Params:
+    """Parameters of the AMS model, SI units throughout (m, kg, s, N).
+
+    Library defaults use a particle mass of 1e-6 kg (one simulated strand stands for a
+    small wisp) and the stiffness-to-mass ratios of the paper's Table 1 defaults
+    (κ_L/m = 1e6 s⁻², κ_I/m = 1e2 s⁻², κ_α/m = 1e2 s⁻² rad⁻¹), so the dynamics match the
+    paper's unit-mass values. :meth:`paper` gives the paper's own units (mass 1).
+    Stiffness-type fields may be tensors (e.g. requiring grad, or per strand (S, 1)).
+
+    Fields:
+        stretch_stiffness: κ_L, N/m, stiffness of the edge springs (pairs i, i+1).
+        bend_scale, torsion_scale: multipliers of κ_L for the bending (i, i+2) and
+            torsion (i, i+3) springs (SPEC §2 allows a per-kind scale).
+        integrity_stiffness: κ_I, N/m, zero-rest-length spring particle → ghost (SPEC §3).
+        angular_stiffness: κ_α, N/rad, angular spring toward the ghost segment (SPEC §3).
+        particle_mass: kg per particle.
+        drag: linear drag rate γ/m, 1/s (force −drag·m·v, world air at rest).
+        dt: frame length, s.
+        substeps: M, backward-Euler substeps per frame (Δt' = dt / M).
+        gravity: (gx, gy, gz), m/s², world frame (+y is up).
+        num_pinned: particles from the root that follow the head rigidly (SPEC §1).
+        sag_free: offset the ghosts so the integrity springs hold the weight at t = 0 (§5).
+        implicit_angular: add the angular spring's tangent stiffness κ_α/|e| (I − êêᵀ) to
+            the matrix (SPD, keeps stiff angular springs stable at large dt).
+        inextensibility: apply follow-the-leader length projection after the substeps.
+        ftl_damping: Müller et al. 2012 velocity-correction factor s_damping ∈ [0, 1].
+        max_relative_speed: m/s; a particle faster than this relative to the head's
+            rigid motion is reported as divergence.
+        check_every: run the divergence guard every this many frames (0 = never; the
+            guard costs one host sync per check).
+    """
+
+    stretch_stiffness: Scalar = 1.0
+    bend_scale: Scalar = 1.0
+    torsion_scale: Scalar = 1.0
+    integrity_stiffness: Scalar = 1e-4
+    angular_stiffness: Scalar = 1e-4
+    particle_mass: Scalar = 1e-6
+    drag: Scalar = 1.5
+    dt: float = 1.0 / 60.0
+    substeps: int = 1
+    gravity: Tuple[float, float, float] = (0.0, -9.81, 0.0)
+    num_pinned: int = 2
+    sag_free: bool = True
+    implicit_angular: bool = True
+    inextensibility: bool = True
+    ftl_damping: float = 0.9
+    max_relative_speed: float = 1.0e3
+    check_every: int = 1
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    # -- validation --------------------------------------------------------------------
+    def validate(self) -> "Params":
+        """Raise ``ValueError`` naming the first invalid field."""
+        for name in ("stretch_stiffness", "bend_scale", "torsion_scale", "integrity_stiffness",
+                     "angular_stiffness", "drag"):
+            v = getattr(self, name)
+            if not _is_finite(v):
+                raise ValueError(f"Params.{name} must be finite; got {v}")
+            if _min_value(v) < 0:
+                raise ValueError(f"Params.{name} must be non-negative (stiffness/drag); got {v}")
+        if not _is_finite(self.particle_mass) or _min_value(self.particle_mass) <= 0:
+            raise ValueError(f"Params.particle_mass must be positive (kg); got {self.particle_mass}")
+        if not (isinstance(self.dt, (int, float)) and math.isfinite(self.dt) and self.dt > 0):
+            raise ValueError(f"Params.dt must be a positive number of seconds; got {self.dt}")
+        if isinstance(self.substeps, bool) or not isinstance(self.substeps, int) or self.substeps < 1:
+            raise ValueError(f"Params.substeps must be a positive integer; got {self.substeps!r}")
+        if isinstance(self.num_pinned, bool) or not isinstance(self.num_pinned, int) or self.num_pinned < 0:
+            raise ValueError(f"Params.num_pinned must be a non-negative integer; got {self.num_pinned!r}")
+        if len(tuple(self.gravity)) != 3 or not all(math.isfinite(float(g)) for g in self.gravity):
+            raise ValueError(f"Params.gravity must be three finite numbers (m/s²); got {self.gravity}")
+        if not 0.0 <= self.ftl_damping <= 1.0:
+            raise ValueError(f"Params.ftl_damping must lie in [0, 1]; got {self.ftl_damping}")
+        if not self.max_relative_speed > 0:
+            raise ValueError(f"Params.max_relative_speed must be positive (m/s); got {self.max_relative_speed}")
+        if self.check_every < 0:
+            raise ValueError(f"Params.check_every must be >= 0; got {self.check_every}")
+        return self
+
+    # -- variants ----------------------------------------------------------------------
+    def replace(self, **changes) -> "Params":
+        """A copy with some fields changed (validated)."""
+        unknown = set(changes) - {f.name for f in fields(self)}
+        if unknown:
+            raise ValueError(f"unknown Params field(s): {sorted(unknown)}")
+        return replace(self, **changes)
+
+    def ms(self) -> "Params":
+        """Plain mass-spring (Selle et al.) for comparisons: κ_I = κ_α = 0, no ghost offset."""
+        return self.replace(integrity_stiffness=0.0, angular_stiffness=0.0, sag_free=False)
+
+    @staticmethod
+    def paper(**changes) -> "Params":
+        """The paper's units (SPEC §10): particle mass 1, κ_L = 1e6, κ_I = 1e2, κ_α = 1e2."""
+        base = dict(particle_mass=1.0, stretch_stiffness=1e6, integrity_stiffness=1e2,
+                    angular_stiffness=1e2, drag=1.5)
+        base.update(changes)
+        return Params(**base)
+
+    @property
+    def substep_dt(self) -> float:
+        return self.dt / self.substeps
+
+    def to_dict(self) -> dict:
+        """JSON-friendly dict (tensors become lists)."""
+        out = {}
+        for k, v in asdict(self).items():
+            out[k] = v.detach().cpu().tolist() if isinstance(v, torch.Tensor) else (list(v) if isinstance(v, tuple) else v)
+        return out
