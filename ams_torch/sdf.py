@@ -1,0 +1,263 @@
+"""Signed distance grids: build once on the CPU (cached on disk), sample in torch on any device.
+
+Grid convention: ``values[i, j, k]`` is the signed distance (metres, negative inside) at the
+point ``origin + spacing * (i, j, k)`` of the mesh's local frame. Voxels are cubes of side
+``spacing``. Sampling is trilinear; normals are the trilinearly interpolated central-difference
+gradient of the grid, normalised (continuous across cells). Points outside the grid's box are
+clamped to the box and the distance to the box is added, so the sign stays right (outside) and
+the value grows like a distance far away.
+"""
+from __future__ import annotations
+
+import hashlib
+import logging
+import math
+import os
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable, Optional, Sequence, Tuple, Union
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+__all__ = ["SDFGrid", "sdf_cache_dir"]
+
+log = logging.getLogger(__name__)
+
+_FORMAT = "ams_torch-sdf-v2"
+
+
+def sdf_cache_dir() -> Path:
+    """Directory of cached SDF grids: ``$AMS_TORCH_CACHE/sdf`` if set, else ``~/.cache/ams_torch/sdf``."""
+    root = os.environ.get("AMS_TORCH_CACHE")
+    base = Path(root) if root else Path.home() / ".cache" / "ams_torch"
+    return base / "sdf"
+
+
+def _mesh_key(vertices: np.ndarray, faces: np.ndarray, resolution: int, padding: float) -> str:
+    h = hashlib.sha256()
+    h.update(_FORMAT.encode())
+    h.update(np.ascontiguousarray(vertices, dtype=np.float64).tobytes())
+    h.update(np.ascontiguousarray(faces, dtype=np.int64).tobytes())
+    h.update(f"|{int(resolution)}|{float(padding)!r}".encode())
+    return h.hexdigest()[:32]
+
+
+class SDFGrid:
+    """A signed distance field sampled on a regular grid (metres, negative inside).
+
+    Args:
+        values: (nx, ny, nz) signed distances, metres; ``values[i, j, k]`` at
+            ``origin + spacing * (i, j, k)``. Each of nx, ny, nz ≥ 2.
+        origin: (3,) metres, position of sample (0, 0, 0) in the local frame.
+        spacing: voxel side, metres.
+
+    Use :meth:`from_mesh` for meshes and :meth:`from_function` for analytic fields.
+    """
+
+    def __init__(self, values: torch.Tensor, origin, spacing: float):
+        values = torch.as_tensor(values)
+        if values.dim() != 3 or min(values.shape) < 2:
+            raise ValueError(f"SDFGrid values must be (nx, ny, nz) with every size ≥ 2, got {tuple(values.shape)}")
+        if not values.is_floating_point():
+            values = values.float()
+        self.spacing = float(spacing)
+        if not self.spacing > 0:
+            raise ValueError("SDFGrid spacing must be positive")
+        self.values = values
+        self.origin = torch.as_tensor(origin, dtype=values.dtype, device=values.device).reshape(3)
+        shape = torch.tensor(values.shape, dtype=values.dtype, device=values.device)
+        self.upper = self.origin + (shape - 1) * self.spacing
+        # (1, 4, nz, ny, nx): σ and its central-difference gradient, laid out for grid_sample
+        grads = torch.gradient(values, spacing=self.spacing, edge_order=1)
+        self._volume = torch.stack((values,) + tuple(grads), 0).permute(0, 3, 2, 1).contiguous()[None]
+
+    # -- construction ----------------------------------------------------------------------
+    @staticmethod
+    def from_function(fn: Callable[[torch.Tensor], torch.Tensor], lower: Sequence[float],
+                      upper: Sequence[float], resolution: int = 64, dtype=torch.float32) -> "SDFGrid":
+        """Sample an analytic signed distance ``fn((..., 3) metres) -> (...)`` on a grid.
+
+        The box [lower, upper] (metres) is covered with cubic voxels, ``resolution`` samples
+        along its longest side (the box grows slightly so that the spacing is uniform).
+        """
+        lower = np.asarray(lower, dtype=np.float64)
+        upper = np.asarray(upper, dtype=np.float64)
+        origin, spacing, shape = _grid_geometry(lower, upper, resolution)
+        pts = _grid_points(origin, spacing, shape)
+        vals = fn(torch.as_tensor(pts, dtype=torch.float64)).reshape(shape)
+        return SDFGrid(vals.to(dtype), torch.as_tensor(origin), spacing)
+
+    @staticmethod
+    def from_mesh(mesh, resolution: int = 128, padding: Optional[float] = None, cache: bool = True,
+                  cache_dir: Optional[Union[str, os.PathLike]] = None) -> "SDFGrid":
+        """Signed distance grid of a closed triangle mesh, in the mesh's own frame (metres).
+
+        Args:
+            mesh: a watertight ``trimesh.Trimesh`` (or anything with ``vertices`` (V, 3) and
+                ``faces`` (F, 3)), coordinates in metres.
+            resolution: samples along the longest side of the padded bounding box; the other
+                sides get as many as the same cubic voxel needs (e.g. 128 → about 90×128×100
+                for the default head).
+            padding: margin added around the mesh's bounding box on every side, metres.
+                Default: 10 % of the longest side plus two voxels.
+            cache: read/write the on-disk cache, keyed by a hash of the vertices, faces,
+                resolution and padding (directory :func:`sdf_cache_dir`, or ``cache_dir``).
+
+        Exact distances come from point-cloud-utils' closest points (AABB tree); the sign from
+        its fast generalised winding number (robust to small defects). Float32 values.
+        """
+        vertices = np.ascontiguousarray(np.asarray(mesh.vertices, dtype=np.float64))
+        faces = np.ascontiguousarray(np.asarray(mesh.faces, dtype=np.int64))
+        resolution = int(resolution)
+        if resolution < 4:
+            raise ValueError("SDF resolution must be at least 4")
+        lo, hi = vertices.min(0), vertices.max(0)
+        extent = float((hi - lo).max())
+        if padding is None:
+            # two voxels on top of 10 %: solve pad = 0.1 e + 2 (e + 2 pad) / (res − 1)
+            padding = (0.1 * extent + 2 * extent / (resolution - 1)) / (1 - 4 / (resolution - 1))
+        padding = float(padding)
+        key = _mesh_key(vertices, faces, resolution, padding)
+        directory = Path(cache_dir) if cache_dir is not None else sdf_cache_dir()
+        path = directory / f"{key}_{resolution}.npz"
+        if cache and path.exists():
+            try:
+                with np.load(path) as data:
+                    if str(data["format"]) == _FORMAT:
+                        return SDFGrid(torch.from_numpy(data["values"]), torch.from_numpy(data["origin"]),
+                                       float(data["spacing"]))
+            except (OSError, KeyError, ValueError) as err:  # corrupt or foreign file: rebuild
+                log.warning("ignoring unreadable SDF cache file %s (%s)", path, err)
+        try:
+            import point_cloud_utils as pcu
+        except ImportError as err:  # pragma: no cover - dependency missing
+            raise ImportError("SDFGrid.from_mesh needs point-cloud-utils: pip install point-cloud-utils") from err
+        origin, spacing, shape = _grid_geometry(lo - padding, hi + padding, resolution)
+        pts = _grid_points(origin, spacing, shape)
+        t0 = time.perf_counter()
+        # Exact unsigned distance (AABB tree), sign from the fast generalised winding number.
+        # (pcu.signed_distance_to_mesh was measured up to 0.7 mm off the true distance on the
+        # default head, so it is not used.) |w| > 1/2 is inside for either face orientation.
+        dist, _, _ = pcu.closest_points_on_mesh(pts, vertices, faces)
+        winding = pcu.triangle_soup_fast_winding_number(vertices, faces, pts)
+        sdf = np.where(np.abs(winding) > 0.5, -dist, dist)
+        log.info("built %s SDF grid of a %d-face mesh in %.1f s", "x".join(map(str, shape)), len(faces),
+                 time.perf_counter() - t0)
+        values = np.asarray(sdf, dtype=np.float32).reshape(shape)
+        if cache:
+            _atomic_save(path, values=values, origin=origin, spacing=np.float64(spacing), format=_FORMAT)
+        return SDFGrid(torch.from_numpy(values), torch.from_numpy(origin), spacing)
+
+    # -- properties --------------------------------------------------------------------
+    @property
+    def shape(self) -> Tuple[int, int, int]:
+        """(nx, ny, nz) number of samples along each axis."""
+        return tuple(self.values.shape)
+
+    @property
+    def voxel_size(self) -> float:
+        """Voxel side, metres (same as ``spacing``)."""
+        return self.spacing
+
+    @property
+    def device(self) -> torch.device:
+        return self.values.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.values.dtype
+
+    def to(self, device=None, dtype=None) -> "SDFGrid":
+        """Copy on another device and/or floating dtype (returns self when nothing changes)."""
+        device = self.values.device if device is None else torch.device(device)
+        dtype = self.values.dtype if dtype is None else dtype
+        if device == self.values.device and dtype == self.values.dtype:
+            return self
+        out = SDFGrid.__new__(SDFGrid)
+        out.spacing = self.spacing
+        out.values = self.values.to(device=device, dtype=dtype)
+        out.origin = self.origin.to(device=device, dtype=dtype)
+        out.upper = self.upper.to(device=device, dtype=dtype)
+        out._volume = self._volume.to(device=device, dtype=dtype)
+        return out
+
+    # -- sampling ----------------------------------------------------------------------
+    def _prepare(self, points: torch.Tensor):
+        if points.shape[-1] != 3:
+            raise ValueError(f"points must be (..., 3), got {tuple(points.shape)}")
+        grid = self.to(points.device, points.dtype) if (points.device != self.device or points.dtype != self.dtype) else self
+        lo, hi = grid.origin, grid.upper
+        clamped = torch.maximum(torch.minimum(points, hi), lo)
+        coords = (clamped - lo) / (hi - lo) * 2 - 1  # grid_sample order (x, y, z) ↔ (W, H, D)
+        return grid, clamped, coords.reshape(1, 1, 1, -1, 3)
+
+    def distance(self, points: torch.Tensor) -> torch.Tensor:
+        """Signed distance (metres, negative inside) at points (..., 3) of the grid's frame → (...).
+
+        Works on any device/dtype (the grid is converted to the points' on the fly; call
+        :meth:`to` once to avoid repeated copies). Differentiable w.r.t. points.
+        """
+        grid, clamped, coords = self._prepare(points)
+        vol = grid._volume[:, :1]
+        sigma = F.grid_sample(vol, coords, mode="bilinear", padding_mode="border", align_corners=True)
+        sigma = sigma.reshape(points.shape[:-1])
+        return sigma + (points - clamped).norm(dim=-1)
+
+    def distance_and_normal(self, points: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        """Signed distance (...) metres and unit outward normal (..., 3) at points (..., 3).
+
+        The normal is the normalised, trilinearly interpolated grid gradient (outside the box:
+        plus the unit direction away from the box). Where the gradient vanishes (deep medial
+        points) the normal falls back to +y.
+        """
+        grid, clamped, coords = self._prepare(points)
+        out = F.grid_sample(grid._volume, coords, mode="bilinear", padding_mode="border", align_corners=True)
+        out = out.reshape(4, -1).transpose(0, 1).reshape(points.shape[:-1] + (4,))
+        off = points - clamped
+        dist_out = off.norm(dim=-1)
+        sigma = out[..., 0] + dist_out
+        grad = out[..., 1:] + off / dist_out.clamp_min(1e-30)[..., None]
+        norm = grad.norm(dim=-1, keepdim=True)
+        up = torch.zeros_like(grad)
+        up[..., 1] = 1
+        normal = torch.where(norm > 1e-12, grad / norm.clamp_min(1e-12), up)
+        return sigma, normal
+
+    def __repr__(self) -> str:
+        nx, ny, nz = self.shape
+        return (f"SDFGrid({nx}x{ny}x{nz}, voxel={self.spacing * 1e3:.2f} mm, "
+                f"origin={self.origin.tolist()}, {self.dtype}, {self.device})")
+
+
+def _grid_geometry(lower: np.ndarray, upper: np.ndarray, resolution: int):
+    extent = upper - lower
+    spacing = float(extent.max()) / (resolution - 1)
+    shape = tuple(int(max(2, math.ceil(e / spacing - 1e-9) + 1)) for e in extent)
+    covered = (np.asarray(shape) - 1) * spacing
+    origin = lower - 0.5 * (covered - extent)  # centre the (slightly larger) grid on the box
+    return origin.astype(np.float64), spacing, shape
+
+
+def _grid_points(origin: np.ndarray, spacing: float, shape) -> np.ndarray:
+    axes = [origin[a] + spacing * np.arange(shape[a]) for a in range(3)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+def _atomic_save(path: Path, **arrays) -> None:
+    """Write an .npz next to ``path`` and move it into place (no half-written cache files)."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=path.stem + ".", suffix=".tmp.npz", dir=path.parent)
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                np.savez(fh, **arrays)
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+    except OSError as err:  # read-only home etc.: the grid still works, just uncached
+        log.warning("could not write SDF cache file %s (%s)", path, err)
