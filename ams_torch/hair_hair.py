@@ -289,25 +289,31 @@ def _flatten(grid: HairHairGrid, x: torch.Tensor, v: Optional[torch.Tensor], mas
 # ---------------------------------------------------------------------------------------------
 # transfers
 # ---------------------------------------------------------------------------------------------
-def _stencil(g: torch.Tensor, dims: Tuple[int, int, int]):
+def _stencil(g: torch.Tensor, dims: Tuple[int, int, int], scene_size: int = 0):
     """Trilinear stencil. g: (B, P, 3) continuous sample coordinates (sample i at g = i) on a grid
-    of ``dims`` samples. Returns flat indices (B, P, 8) long (within one scene's grid, clamped)
-    and weights (B, P, 8) (zero for samples outside the grid)."""
+    of ``dims`` samples (each ≥ 2). Returns flat indices (B, P, 8) long (scene b's grid starts at
+    ``b · scene_size``) and weights (B, P, 8), zero for samples outside the grid.
+
+    Per axis the lower corner is clamped to [0, n − 2] and the weights are moved onto the two
+    corners that exist, so the 8 indices are one base index plus fixed offsets."""
     base = torch.floor(g)
     f = g - base
-    base = base.long()
-    idx, wts = [], []
-    for d in range(3):
-        i0 = base[..., d]
-        i = torch.stack((i0, i0 + 1), -1)  # (B, P, 2)
-        w = torch.stack((1 - f[..., d], f[..., d]), -1)
-        inside = (i >= 0) & (i < dims[d])
-        wts.append(torch.where(inside, w, torch.zeros_like(w)))
-        idx.append(i.clamp(0, dims[d] - 1))
+    i0 = base.long()
+    bc = torch.stack([i0[..., a].clamp(0, dims[a] - 2) for a in range(3)], -1)  # (B, P, 3)
+    d = i0 - bc  # 0 inside; −1 / 1 half outside; else fully outside
+    one_f = 1 - f
+    zero = torch.zeros_like(f)
+    w0 = torch.where(d == 0, one_f, torch.where(d == -1, f, zero))
+    w1 = torch.where(d == 0, f, torch.where(d == 1, one_f, zero))
+    wa = torch.stack((w0, w1), -1)  # (B, P, 3, 2)
+    w = wa[..., 0, :, None, None] * wa[..., 1, None, :, None] * wa[..., 2, None, None, :]
     b, p = g.shape[:2]
-    flat = (idx[0][..., :, None, None] * dims[1] + idx[1][..., None, :, None]) * dims[2] + idx[2][..., None, None, :]
-    w = wts[0][..., :, None, None] * wts[1][..., None, :, None] * wts[2][..., None, None, :]
-    return flat.reshape(b, p, 8), w.reshape(b, p, 8)
+    flat = (bc[..., 0] * dims[1] + bc[..., 1]) * dims[2] + bc[..., 2]
+    if scene_size:
+        flat = flat + torch.arange(b, device=g.device)[:, None] * scene_size
+    o = torch.arange(2, device=g.device)
+    offs = ((o[:, None, None] * dims[1] + o[None, :, None]) * dims[2] + o[None, None, :]).reshape(8)
+    return flat[..., None] + offs, w.reshape(b, p, 8)
 
 
 def _face_dims(r: int, c: int) -> Tuple[int, int, int]:
@@ -322,10 +328,6 @@ def _face_coords(grid: HairHairGrid, xl: torch.Tensor, c: int) -> torch.Tensor:
     return g - shift
 
 
-def _scene_offsets(b: int, size: int, device) -> torch.Tensor:
-    return (torch.arange(b, device=device) * size)[:, None, None]
-
-
 def _p2g_face(grid: HairHairGrid, xl, vl, m, c: int):
     """Rasterise mass and c-momentum to the c-face grid. Returns mass and velocity
     (B, *face dims) (velocity = momentum / mass, 0 where empty), and the stencil."""
@@ -333,14 +335,13 @@ def _p2g_face(grid: HairHairGrid, xl, vl, m, c: int):
     dims = _face_dims(r, c)
     size = dims[0] * dims[1] * dims[2]
     b = xl.shape[0]
-    idx, w = _stencil(_face_coords(grid, xl, c), dims)
-    flat = (idx + _scene_offsets(b, size, xl.device)).reshape(-1)
-    wm = w * m[..., None]
+    idx, w = _stencil(_face_coords(grid, xl, c), dims, size)
     if vl is None:
-        vals = wm.reshape(-1, 1)
+        vals = (w * m[..., None]).reshape(-1, 1)
     else:
-        vals = torch.stack((wm, wm * vl[..., c:c + 1]), -1).reshape(-1, 2)
-    acc = torch.zeros(b * size, vals.shape[1], device=xl.device, dtype=xl.dtype).index_add(0, flat, vals)
+        mv = torch.stack((m, m * vl[..., c]), -1)  # (B, P, 2): mass, c-momentum
+        vals = (w[..., None] * mv[:, :, None, :]).reshape(-1, 2)
+    acc = torch.zeros(b * size, vals.shape[1], device=xl.device, dtype=xl.dtype).index_add(0, idx.reshape(-1), vals)
     mass = acc[:, 0].reshape(b, *dims)
     if vl is None:
         return mass, None, (idx, w)
@@ -353,9 +354,7 @@ def _p2g_face(grid: HairHairGrid, xl, vl, m, c: int):
 def _g2p(field: torch.Tensor, stencil) -> torch.Tensor:
     """Trilinear interpolation of a (B, *dims) grid field at the stencil's particles: (B, P)."""
     idx, w = stencil
-    b = field.shape[0]
-    vals = torch.gather(field.reshape(b, -1), 1, idx.reshape(b, -1)).reshape(idx.shape)
-    return (vals * w).sum(-1)
+    return (field.reshape(-1)[idx] * w).sum(-1)
 
 
 def _cell_mass(face_mass) -> torch.Tensor:
@@ -389,10 +388,18 @@ def grid_density(grid: HairHairGrid, x: torch.Tensor, mass, head_pose: Optional[
 # volume preservation
 # ---------------------------------------------------------------------------------------------
 def _neighbour_sum(phi: torch.Tensor) -> torch.Tensor:
-    """Sum of the 6 face neighbours of each cell of (B, R, R, R), zero outside."""
-    p = F.pad(phi, (1, 1, 1, 1, 1, 1))
-    return (p[:, :-2, 1:-1, 1:-1] + p[:, 2:, 1:-1, 1:-1] + p[:, 1:-1, :-2, 1:-1]
-            + p[:, 1:-1, 2:, 1:-1] + p[:, 1:-1, 1:-1, :-2] + p[:, 1:-1, 1:-1, 2:])
+    """Sum of the 6 face neighbours of each cell of (B, R, R, R), zero outside.
+
+    Accumulates shifted slices into a fresh buffer (in place on that buffer only, which
+    autograd handles: no input is modified); several times faster on CPU than padding."""
+    n = torch.zeros_like(phi)
+    n[:, 1:] += phi[:, :-1]
+    n[:, :-1] += phi[:, 1:]
+    n[:, :, 1:] += phi[:, :, :-1]
+    n[:, :, :-1] += phi[:, :, 1:]
+    n[:, :, :, 1:] += phi[:, :, :, :-1]
+    n[:, :, :, :-1] += phi[:, :, :, 1:]
+    return n
 
 
 def _divergence(face_vel, h: float) -> torch.Tensor:
@@ -417,13 +424,14 @@ def _pressure_potential(grid: HairHairGrid, rho: torch.Tensor, div_u: torch.Tens
     safe = torch.where(filled, rho, torch.ones_like(rho))
     b = cfg.volume_stiffness * (1 - rho0 / safe) / dt
     b = torch.where(rho > rho0, torch.maximum(b, -div_u), b)
-    src = torch.where(filled, h2 * b, torch.zeros_like(b))
-    phi = torch.zeros_like(rho)
+    mask = filled.to(rho.dtype)
     omega = cfg.jacobi_omega
+    # φ ← max(0, (1 − ω) φ + ω (h² b + Σ_neighbours φ) / 6) in filled cells, 0 elsewhere
+    src = torch.where(filled, b * (h2 * omega / 6.0), torch.zeros_like(b))
+    phi = torch.zeros_like(rho)
     for _ in range(cfg.pressure_iterations):
-        jac = (src + _neighbour_sum(phi)) / 6.0
-        nxt = ((1 - omega) * phi + omega * jac).clamp_min(0)
-        phi = torch.where(filled, nxt, torch.zeros_like(nxt))
+        nxt = torch.addcmul(src, _neighbour_sum(phi), mask, value=omega / 6.0)
+        phi = nxt.add(phi, alpha=1.0 - omega).clamp_min(0)
     return phi
 
 
