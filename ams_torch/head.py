@@ -19,9 +19,10 @@ import os
 from typing import Dict, Union
 
 import numpy as np
+import torch
 import trimesh
 
-__all__ = ["default_head", "load_mesh", "head_implicit"]
+__all__ = ["default_head", "load_mesh", "head_implicit", "hanging_groom"]
 
 log = logging.getLogger(__name__)
 
@@ -228,3 +229,51 @@ def load_mesh(path: Union[str, os.PathLike], repair: bool = False) -> trimesh.Tr
     if mesh.volume < 0:
         mesh.invert()
     return mesh
+
+
+def hanging_groom(mesh: trimesh.Trimesh, strands: int = 1000, particles: int = 32, length: float = 0.2,
+                  region: str = "scalp", sdf=None, clearance: float = 0.003, seed: int = 0,
+                  dtype=torch.float32) -> torch.Tensor:
+    """A simple deterministic groom hanging from a region of a head mesh (tests, benchmarks, demos).
+
+    Not the procedural grower of SPEC §9: roots are area-uniform samples of the region's
+    triangles, each strand leaves along the face normal and turns smoothly outward-and-down
+    over its first third; with ``sdf`` (an :class:`~ams_torch.sdf.SDFGrid` of ``mesh``) every
+    particle after the root is kept at least ``clearance`` metres outside the head.
+
+    Args:
+        mesh: head mesh in metres with ``metadata["regions"]`` (e.g. :func:`default_head`).
+        strands, particles: S and N. length: strand length, metres (±10 % per strand).
+        region: name of the root region. seed: sampling seed.
+    Returns: rest positions (S, N, 3), metres, head frame.
+    """
+    faces = np.asarray(mesh.metadata["regions"][region])
+    sub = mesh.submesh([faces], append=True)
+    roots, fid = trimesh.sample.sample_surface(sub, strands, seed=seed)
+    rng = np.random.default_rng(seed)
+    n = sub.face_normals[fid]
+    horiz = n * np.array([1.0, 0.0, 1.0])
+    hn = np.linalg.norm(horiz, axis=1, keepdims=True)
+    horiz = np.where(hn > 1e-3, horiz / np.maximum(hn, 1e-9), np.array([0.0, 0.0, -1.0]))
+    down = np.array([0.0, -1.0, 0.0])
+    step = length * (1 + 0.1 * rng.uniform(-1, 1, size=(strands, 1))) / (particles - 1)
+    x = np.zeros((strands, particles, 3))
+    x[:, 0] = roots
+    grid = None if sdf is None else sdf.to(dtype=torch.float64)
+    for i in range(1, particles):
+        s = (i - 1) / max(1, particles - 2)
+        w = min(1.0, 3.0 * s)
+        w = w * w * (3 - 2 * w)
+        d = (1 - w) * n + w * (0.35 * horiz + down)
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        xi = x[:, i - 1] + step * d
+        if grid is not None:
+            for _ in range(3):
+                sig, nrm = grid.distance_and_normal(torch.from_numpy(xi))
+                push = (clearance - sig).clamp_min(0).numpy()
+                xi = xi + push[:, None] * nrm.numpy()
+            # keep the segment length after the push
+            seg = xi - x[:, i - 1]
+            xi = x[:, i - 1] + seg / np.linalg.norm(seg, axis=1, keepdims=True) * step
+        x[:, i] = xi
+    return torch.as_tensor(x, dtype=dtype)
