@@ -110,6 +110,9 @@ class SphereCollider(Collider):
         n, length = _unit_or(points - _like(self.center, points), _UP)
         return length - self.radius, n
 
+    def distance(self, points):
+        return (points - _like(self.center, points)).norm(dim=-1) - self.radius
+
     def __repr__(self):
         return f"SphereCollider(center={self.center.tolist()}, radius={self.radius}, friction={self.friction})"
 
@@ -131,6 +134,12 @@ class CapsuleCollider(Collider):
         n, length = _unit_or(points - a - h[..., None] * ab, _UP)
         return length - self.radius, n
 
+    def distance(self, points):
+        a, b = _like(self.a, points), _like(self.b, points)
+        ab = b - a
+        h = (_dot(points - a, ab) / _dot(ab, ab).clamp_min(1e-30)).clamp(0, 1)
+        return (points - a - h[..., None] * ab).norm(dim=-1) - self.radius
+
     def __repr__(self):
         return (f"CapsuleCollider(a={self.a.tolist()}, b={self.b.tolist()}, radius={self.radius}, "
                 f"friction={self.friction})")
@@ -150,6 +159,9 @@ class PlaneCollider(Collider):
     def distance_and_normal(self, points):
         n = _like(self.normal, points)
         return _dot(points - _like(self.point, points), n), n.expand_as(points)
+
+    def distance(self, points):
+        return points @ _like(self.normal, points) - float(self.point @ self.normal)
 
     def __repr__(self):
         return f"PlaneCollider(point={self.point.tolist()}, normal={self.normal.tolist()}, friction={self.friction})"
@@ -370,6 +382,24 @@ def _flat_pose(pose: Optional[Pose], batch: torch.Size, x: torch.Tensor):
 # ---------------------------------------------------------------------------------------
 # response
 # ---------------------------------------------------------------------------------------
+def _world_to_local(xf: torch.Tensor, rot: torch.Tensor, trans: torch.Tensor) -> torch.Tensor:
+    """xf (B, K, 3), rot (B, 3, 3), trans (B, 3) → rows Rᵀ (x − T), as x R − T R in one fused op."""
+    offset = -(trans[:, None, :] @ rot)  # (B, 1, 3)
+    if rot.shape[0] == 1:
+        return torch.addmm(offset[0], xf[0], rot[0])[None]
+    return torch.baddbmm(offset, xf, rot)
+
+
+def _rotate_rows(d: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+    """R d for rows d (M, 3) with one R (3, 3) or one per row (M, 3, 3)."""
+    return d @ r.T if r.dim() == 2 else (r * d[:, None, :]).sum(-1)
+
+
+def _unrotate_rows(d: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+    """Rᵀ d for rows d (M, 3) with one R (3, 3) or one per row (M, 3, 3)."""
+    return d @ r if r.dim() == 2 else (d[:, :, None] * r).sum(1)
+
+
 def collider_distances(x: torch.Tensor, colliders: Sequence[Collider], world_poses: Sequence[Optional[Pose]]
                        ) -> torch.Tensor:
     """Signed distance of every particle to every collider (metres, negative inside).
@@ -383,7 +413,7 @@ def collider_distances(x: torch.Tensor, colliders: Sequence[Collider], world_pos
     out = []
     for col, pose in zip(colliders, world_poses):
         rot, trans, _, _ = _flat_pose(pose, batch, x)
-        local = torch.bmm(xf - trans[:, None], rot)
+        local = _world_to_local(xf, rot, trans)
         out.append(col.distance(local).reshape(x.shape[:-1]))
     return torch.stack(out)
 
@@ -439,20 +469,24 @@ def collide(x: torch.Tensor, v: torch.Tensor, dt: float, colliders: Sequence[Col
     cloned = False
     for col, pose in zip(colliders, world_poses):
         rot, trans, lin, ang = _flat_pose(pose, batch, x)
-        local = torch.bmm(xf - trans[:, None], rot)  # rows: Rᵀ (x − T)
+        local = _world_to_local(xf, rot, trans)
         inside = col.distance(local) < 0
         if free_k is not None:
             inside = inside & free_k
         bi, ki = inside.nonzero(as_tuple=True)
         if bi.numel() == 0:
             continue
-        r = rot[bi]  # (M, 3, 3)
-        t = trans[bi]
+        if rot.shape[0] == 1:  # one pose for every particle: no per-contact gathers
+            r, t = rot[0], trans[0]
+            lin_m, ang_m = (lin[0], ang[0]) if lin is not None else (None, None)
+        else:
+            r, t = rot[bi], trans[bi]
+            lin_m, ang_m = (lin[bi], ang[bi]) if lin is not None else (None, None)
         xm, vm = xf[bi, ki], vf[bi, ki]
-        sigma, n_local = col.distance_and_normal(local[bi, ki])
-        n = (r @ n_local[..., None])[..., 0]
-        if lin is not None:
-            vc = lin[bi] + torch.linalg.cross(ang[bi], xm - t)
+        _, n_local = col.distance_and_normal(local[bi, ki])
+        n = _rotate_rows(n_local, r)
+        if lin_m is not None:
+            vc = lin_m + torch.linalg.cross(ang_m.expand_as(xm), xm - t)
         else:
             vc = torch.zeros_like(vm)
         vrel = vm - vc
@@ -465,12 +499,12 @@ def collide(x: torch.Tensor, v: torch.Tensor, dt: float, colliders: Sequence[Col
         v_new = vc + vn.clamp_min(0)[..., None] * n + keep[..., None] * vt
         x_new = xm + dt * (v_new - vm) if dt else xm
         for _ in range(max(1, col.projection_iterations)):
-            s_new, nl_new = col.distance_and_normal(torch.bmm((x_new - t)[:, None], r)[:, 0])
+            s_new, nl_new = col.distance_and_normal(_unrotate_rows(x_new - t, r))
             still = s_new < 0
             if not bool(still.any()):
                 break
             depth = torch.where(still, -s_new, torch.zeros_like(s_new))
-            x_new = x_new + depth[..., None] * (r @ nl_new[..., None])[..., 0]
+            x_new = x_new + depth[..., None] * _rotate_rows(nl_new, r)
         if not cloned:
             xf, vf, cloned = xf.clone(), vf.clone(), True
         xf.index_put_((bi, ki), x_new)

@@ -186,13 +186,19 @@ class SDFGrid:
 
     # -- sampling ----------------------------------------------------------------------
     def _prepare(self, points: torch.Tensor):
+        """Grid on the points' device/dtype, grid_sample coordinates (1, 1, 1, P, 3) clamped to
+        the box, and the offset (..., 3) metres from the box to each point (zero inside it)."""
         if points.shape[-1] != 3:
             raise ValueError(f"points must be (..., 3), got {tuple(points.shape)}")
-        grid = self.to(points.device, points.dtype) if (points.device != self.device or points.dtype != self.dtype) else self
+        grid = self
+        if points.device != self.device or points.dtype != self.dtype:
+            grid = self.to(points.device, points.dtype)
         lo, hi = grid.origin, grid.upper
-        clamped = torch.maximum(torch.minimum(points, hi), lo)
-        coords = (clamped - lo) / (hi - lo) * 2 - 1  # grid_sample order (x, y, z) ↔ (W, H, D)
-        return grid, clamped, coords.reshape(1, 1, 1, -1, 3)
+        scale = 2.0 / (hi - lo)  # metres → [−1, 1]; grid_sample order (x, y, z) ↔ (W, H, D)
+        raw = torch.addcmul(-1.0 - lo * scale, points, scale)
+        coords = raw.clamp(-1.0, 1.0)
+        outside = (raw - coords) / scale
+        return grid, coords.reshape(1, 1, 1, -1, 3), outside
 
     def distance(self, points: torch.Tensor) -> torch.Tensor:
         """Signed distance (metres, negative inside) at points (..., 3) of the grid's frame → (...).
@@ -200,11 +206,10 @@ class SDFGrid:
         Works on any device/dtype (the grid is converted to the points' on the fly; call
         :meth:`to` once to avoid repeated copies). Differentiable w.r.t. points.
         """
-        grid, clamped, coords = self._prepare(points)
+        grid, coords, outside = self._prepare(points)
         vol = grid._volume[:, :1]
         sigma = F.grid_sample(vol, coords, mode="bilinear", padding_mode="border", align_corners=True)
-        sigma = sigma.reshape(points.shape[:-1])
-        return sigma + (points - clamped).norm(dim=-1)
+        return sigma.reshape(points.shape[:-1]) + outside.norm(dim=-1)
 
     def distance_and_normal(self, points: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
         """Signed distance (...) metres and unit outward normal (..., 3) at points (..., 3).
@@ -213,13 +218,12 @@ class SDFGrid:
         plus the unit direction away from the box). Where the gradient vanishes (deep medial
         points) the normal falls back to +y.
         """
-        grid, clamped, coords = self._prepare(points)
+        grid, coords, outside = self._prepare(points)
         out = F.grid_sample(grid._volume, coords, mode="bilinear", padding_mode="border", align_corners=True)
         out = out.reshape(4, -1).transpose(0, 1).reshape(points.shape[:-1] + (4,))
-        off = points - clamped
-        dist_out = off.norm(dim=-1)
+        dist_out = outside.norm(dim=-1)
         sigma = out[..., 0] + dist_out
-        grad = out[..., 1:] + off / dist_out.clamp_min(1e-30)[..., None]
+        grad = out[..., 1:] + outside / dist_out.clamp_min(1e-30)[..., None]
         norm = grad.norm(dim=-1, keepdim=True)
         up = torch.zeros_like(grad)
         up[..., 1] = 1
