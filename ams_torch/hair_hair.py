@@ -48,7 +48,7 @@ Choices (written down here because the paper leaves them open):
   its own strand. For each pair closer than the radius, positions are pushed apart by
   ``collision_stiffness`` of the overlap and the approaching part of the relative normal
   velocity is removed (inelastic), shared by inverse mass (pinned particles are immovable),
-  averaged over each particle's contacts. Memory is O(P · 27 · K).
+  averaged over each particle's contacts. Work is O(P · 27 · K), memory O(P · K).
 * **Batching.** Leading dims ``...`` of ``x`` are flattened into ``B`` scenes, each with its own
   copy of the grid (one ``index_add`` over ``B`` grids; the Jacobi sweeps run on ``(B, R, R, R)``).
 
@@ -452,53 +452,58 @@ def _detailed_collisions(grid: HairHairGrid, xl, vl, m, free_p, dt):
     """Particle repulsion between strands through a sort-based spatial hash (head frame).
 
     xl, vl: (B, P, 3) head-frame positions (m) and relative velocities (m/s) after the grid
-    stage; m: (B, P) kg; free_p: (P,) bool. Returns (dx, dv) (B, P, 3) corrections.
+    stage; m: (B, P) kg; free_p: (P,) bool. Returns (dx, dv) (B, P, 3) corrections (m, m/s).
+    The particles are sorted once by hash-cell key; each of the 27 neighbour offsets is then
+    one batched lookup (``searchsorted``) of up to K candidates per particle, so peak memory is
+    O(P · K), not O(P · 27 · K).
     """
     cfg = grid.config
     r = cfg.collision_radius
     k = cfg.collision_max_per_cell
     hs = grid.hash_size
     b, p, _ = xl.shape
-    dev = xl.device
-    cell = torch.floor((xl - grid.origin.to(xl.dtype)) / r).long().clamp(-1, hs - 2) + 1  # in [0, hs-1]
+    dev, dtype = xl.device, xl.dtype
+    cell = torch.floor((xl - grid.origin.to(dtype)) / r).long().clamp(-1, hs - 2) + 1  # in [0, hs − 1]
     scene = torch.arange(b, device=dev)[:, None]
+
     key = ((scene * hs + cell[..., 0]) * hs + cell[..., 1]) * hs + cell[..., 2]  # (B, P)
     sorted_key, order = torch.sort(key.reshape(-1))
-    o = torch.arange(-1, 2, device=dev)
-    offs = torch.stack(torch.meshgrid(o, o, o, indexing="ij"), -1).reshape(27, 3)
-    nb = cell[:, :, None, :] + offs  # (B, P, 27, 3)
-    inside = ((nb >= 0) & (nb < hs)).all(-1)
-    nb = nb.clamp(0, hs - 1)
-    nkey = ((scene[..., None] * hs + nb[..., 0]) * hs + nb[..., 1]) * hs + nb[..., 2]
-    start = torch.searchsorted(sorted_key, nkey.reshape(-1)).reshape(b, p, 27)
-    end = torch.searchsorted(sorted_key, nkey.reshape(-1), right=True).reshape(b, p, 27)
-    slot = start[..., None] + torch.arange(k, device=dev)  # (B, P, 27, K)
-    ok = (slot < end[..., None]) & inside[..., None]
-    j = order[slot.clamp_max(b * p - 1)].reshape(b, p, 27 * k)  # flat ids over B·P
-    ok = ok.reshape(b, p, 27 * k)
-    jp = j % p
-    ip = torch.arange(p, device=dev)
-    n_per = grid.num_particles
-    ok = ok & (jp // n_per != (ip // n_per)[None, :, None])
-    xj = xl.reshape(b * p, 3)[j]
-    vj = vl.reshape(b * p, 3)[j]
-    d = xl[:, :, None, :] - xj
-    dist = d.norm(dim=-1)
-    ok = ok & (dist < r) & (dist > 0)
-    nrm = d / torch.where(ok, dist, torch.ones_like(dist))[..., None]
-    free_f = free_p.to(xl.dtype)
-    inv_i = (free_f / m)[..., None]  # (B, P, 1)
-    inv_j = (free_f.expand(b, p) / m).reshape(-1)[j]  # (B, P, C)
-    denom = inv_i + inv_j
-    share = inv_i / torch.where(denom > 0, denom, torch.ones_like(denom))
-    wgt = torch.where(ok, share, torch.zeros_like(share))
-    count = ok.sum(-1, keepdim=True).clamp_min(1).to(xl.dtype)
-    push = cfg.collision_stiffness * (r - dist) * wgt
-    dx = (push[..., None] * nrm).sum(-2) / count
-    vn = ((vl[:, :, None, :] - vj) * nrm).sum(-1)
-    stop = (-vn).clamp_min(0) * wgt
-    dv = (stop[..., None] * nrm).sum(-2) / count
-    return dx, dv
+    xf, vf = xl.reshape(b * p, 3), vl.reshape(b * p, 3)
+    free_f = free_p.to(dtype)
+    inv = free_f / m  # (B, P) inverse mass, 0 for pinned particles
+    inv_f = inv.reshape(-1)
+    strand_i = (torch.arange(p, device=dev) // grid.num_particles)[None, :, None]
+    slots = torch.arange(k, device=dev)
+    push = torch.zeros_like(xl)
+    stop = torch.zeros_like(xl)
+    count = torch.zeros(b, p, device=dev, dtype=dtype)
+    for ox in (-1, 0, 1):
+        for oy in (-1, 0, 1):
+            for oz in (-1, 0, 1):
+                inside = torch.ones_like(key, dtype=torch.bool)
+                for axis, o in enumerate((ox, oy, oz)):
+                    if o:
+                        ca = cell[..., axis] + o
+                        inside = inside & (ca >= 0) & (ca < hs)
+                nkey = (key + ((ox * hs) + oy) * hs + oz).reshape(-1)  # meaningful where inside
+                start = torch.searchsorted(sorted_key, nkey).reshape(b, p, 1)
+                end = torch.searchsorted(sorted_key, nkey, right=True).reshape(b, p, 1)
+                slot = start + slots  # (B, P, K)
+                j = order[slot.clamp_max(b * p - 1)]  # flat ids over B·P
+                ok = (slot < end) & inside[..., None] & ((j % p) // grid.num_particles != strand_i)
+                d = xl[:, :, None, :] - xf[j]
+                dist = d.norm(dim=-1)
+                ok = ok & (dist < r) & (dist > 0)
+                nrm = d / torch.where(ok, dist, torch.ones_like(dist))[..., None]
+                denom = inv[..., None] + inv_f[j]
+                share = inv[..., None] / torch.where(denom > 0, denom, torch.ones_like(denom))
+                wgt = torch.where(ok, share, torch.zeros_like(share))
+                push = push + ((cfg.collision_stiffness * (r - dist) * wgt)[..., None] * nrm).sum(-2)
+                vn = ((vl[:, :, None, :] - vf[j]) * nrm).sum(-1)
+                stop = stop + (((-vn).clamp_min(0) * wgt)[..., None] * nrm).sum(-2)
+                count = count + ok.sum(-1).to(dtype)
+    count = count.clamp_min(1)[..., None]
+    return push / count, stop / count
 
 
 # ---------------------------------------------------------------------------------------------
@@ -524,6 +529,8 @@ def hair_hair_stage(grid: Optional[HairHairGrid], x: torch.Tensor, v: torch.Tens
     """
     if grid is None:
         return x, v
+    if isinstance(dt, (int, float)) and not (math.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be a positive number of seconds; got {dt!r}")
     cfg = grid.config
     xl, vl, m, rot, lead = _flatten(grid, x, v, mass, head_pose)
     b, p, _ = xl.shape

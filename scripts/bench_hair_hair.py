@@ -3,7 +3,7 @@
     .venv/bin/python scripts/bench_hair_hair.py                 # CPU, the default grid of cases
     .venv/bin/python scripts/bench_hair_hair.py --device cuda   # GPU (synchronised timings)
 
-Cases: strands × 32 particles (``ams_torch.testing.sphere_groom``, the tests' factory) at
+Cases: strands × 32 particles (``head_groom`` from ``tests/test_hair_hair.py``) at
 each grid resolution, default config (FLIP 0.95, 50 Jacobi sweeps, no detailed collisions),
 plus a few cases with detailed collisions. The groom is posed by a moving head, slightly
 compressed and given random velocities so every part of the stage has work. Each case: one
@@ -23,11 +23,13 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
 
 from ams_torch.hair_hair import HairHair, hair_hair_stage  # noqa: E402
 from ams_torch.pose import Pose  # noqa: E402
-from ams_torch.testing import sphere_groom  # noqa: E402
+from test_hair_hair import head_groom  # noqa: E402  (the tests' input factory)
 
 MASS = 1e-6  # kg per particle
 DT = 1.0 / 60.0
@@ -55,7 +57,7 @@ def sync(device):
 
 
 def make_inputs(strands, particles, device, dtype, seed=0):
-    rest = sphere_groom(strands, particles, seed=seed, dtype=dtype).to(device)
+    rest = head_groom(strands, particles, seed=seed, dtype=dtype).to(device)
     pose = Pose.from_rotvec([0.1, 0.4, -0.05], [0.0, 1.6, 0.0], [0.3, 0.0, -0.2], [0.0, 1.5, 0.5],
                             device=device, dtype=dtype)
     g = torch.Generator(device="cpu").manual_seed(seed)
@@ -107,7 +109,8 @@ def main(argv=None):
     ap.add_argument("--threads", type=int, default=0,
                     help="torch CPU threads (0: torch's default). On a machine shared with other jobs, "
                          "1 avoids OpenMP threads waiting on busy cores")
-    ap.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "hair_hair"))
+    ap.add_argument("--note", default="", help="a line added to the report (e.g. how loaded the machine was)")
+    ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks" / "hair_hair"))
     args = ap.parse_args(argv)
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
@@ -135,6 +138,8 @@ def main(argv=None):
                   "2 pinned particles per strand",
         "timing": f"one warm-up call, then up to {args.reps} calls or {args.case_cap:.0f} s per case; "
                   "median wall-clock ms, device synchronised",
+        "threads": torch.get_num_threads(),
+        "note": args.note,
         "total_seconds": total,
         "rows": rows,
     }
@@ -148,7 +153,7 @@ def main(argv=None):
         f"Device: `{device}`, {args.dtype}. Config: {result['config']}.  ",
         f"Timing: {result['timing']}. Rerun: `.venv/bin/python scripts/bench_hair_hair.py"
         f"{' --device ' + args.device if device.type != 'cpu' else ''}`.",
-        "",
+        *([f"Note: {args.note}", ""] if args.note else [""]),
         "| strands × particles | grid | detailed collisions | median ms | min ms | max ms | reps | build ms |",
         "|---|---|---|---|---|---|---|---|",
     ]
