@@ -19,6 +19,7 @@ from abc import ABC, abstractmethod
 from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
 import torch
+import torch.nn.functional as F
 
 from .pose import Pose
 from .sdf import SDFGrid
@@ -95,6 +96,14 @@ class Collider(ABC):
         """Local points (..., 3) metres → signed distance σ (...) metres, negative inside."""
         return self.distance_and_normal(points)[0]
 
+    def contact_mask(self, x: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
+        """Broad phase of :func:`collide`: which world points are inside (σ < 0).
+
+        x: (B, K, 3) world points, metres; rotation (B, 3, 3), translation (B, 3): the world
+        pose. Returns (B, K) bool. Subclasses may fuse the transform into the test.
+        """
+        return self.distance(_world_to_local(x, rotation, translation)) < 0
+
 
 class SphereCollider(Collider):
     """Solid ball. center: (3,) metres (local frame), radius: metres."""
@@ -112,6 +121,10 @@ class SphereCollider(Collider):
 
     def distance(self, points):
         return (points - _like(self.center, points)).norm(dim=-1) - self.radius
+
+    def contact_mask(self, x, rotation, translation):
+        centre = (rotation @ _like(self.center, x)[:, None])[..., 0] + translation  # world (B, 3)
+        return (x - centre[:, None, :]).square().sum(-1) < self.radius ** 2
 
     def __repr__(self):
         return f"SphereCollider(center={self.center.tolist()}, radius={self.radius}, friction={self.friction})"
@@ -284,6 +297,22 @@ class MeshCollider(Collider):
 
     def distance(self, points):
         return self._grid_for(points).distance(points)
+
+    def contact_mask(self, x, rotation, translation):
+        # world → grid_sample coordinates in one affine map; points outside the grid's box are
+        # outside the mesh (the box is padded), so the clamped sample alone decides the sign.
+        grid = self._grid_for(x)
+        scale = 2.0 / (grid.upper - grid.origin)
+        lin = rotation * scale  # (B, 3, 3): columns scaled, coords = x R diag(s) + c
+        off = ((-translation[:, None, :] @ rotation)[:, 0] - grid.origin) * scale - 1.0  # (B, 3)
+        if x.shape[0] == 1:
+            coords = torch.addmm(off, x[0], lin[0])[None]
+        else:
+            coords = torch.baddbmm(off[:, None, :], x, lin)
+        coords = coords.clamp_(-1.0, 1.0).reshape(1, 1, 1, -1, 3)
+        sigma = F.grid_sample(grid._volume[:, :1], coords, mode="bilinear", padding_mode="border",
+                              align_corners=True)
+        return sigma.reshape(x.shape[:2]) < 0
 
     def distance_and_normal(self, points):
         return self._grid_for(points).distance_and_normal(points)
@@ -469,8 +498,8 @@ def collide(x: torch.Tensor, v: torch.Tensor, dt: float, colliders: Sequence[Col
     cloned = False
     for col, pose in zip(colliders, world_poses):
         rot, trans, lin, ang = _flat_pose(pose, batch, x)
-        local = _world_to_local(xf, rot, trans)
-        inside = col.distance(local) < 0
+        with torch.no_grad():
+            inside = col.contact_mask(xf, rot, trans)
         if free_k is not None:
             inside = inside & free_k
         bi, ki = inside.nonzero(as_tuple=True)
@@ -483,7 +512,7 @@ def collide(x: torch.Tensor, v: torch.Tensor, dt: float, colliders: Sequence[Col
             r, t = rot[bi], trans[bi]
             lin_m, ang_m = (lin[bi], ang[bi]) if lin is not None else (None, None)
         xm, vm = xf[bi, ki], vf[bi, ki]
-        _, n_local = col.distance_and_normal(local[bi, ki])
+        _, n_local = col.distance_and_normal(_unrotate_rows(xm - t, r))
         n = _rotate_rows(n_local, r)
         if lin_m is not None:
             vc = lin_m + torch.linalg.cross(ang_m.expand_as(xm), xm - t)

@@ -194,6 +194,18 @@ def test_no_penetration_and_no_inward_velocity_analytic(dtype):
         assert (vt1.norm(dim=-1) <= vt0.norm(dim=-1) * (1 + 1e-5) + 1e-6).all()
 
 
+def test_fused_contact_masks_match_the_distances(head_collider):
+    gen = torch.Generator().manual_seed(4)
+    poses = [random_pose(gen, dtype=torch.float32) for _ in range(2)]
+    batched = Pose(torch.stack([p.rotation for p in poses]), torch.stack([p.translation for p in poses]))
+    for col in analytic_colliders() + [head_collider]:
+        x = batched.translation[:, None] + 0.25 * torch.randn(2, 3000, 3, generator=gen)  # in and far out
+        mask = col.contact_mask(x, batched.rotation, batched.translation)
+        ref = collider_distances(x[:, None], [col], [batched])[0, :, 0] < 0
+        assert ref.sum() > 20 and (~ref).sum() > 20
+        assert torch.equal(mask, ref), type(col).__name__
+
+
 def test_rotated_pose_matches_world_space_formula():
     # a capsule along local x, posed in the world by a rotation and translation: σ in the world
     # must equal the capsule's σ with its end points carried to the world
