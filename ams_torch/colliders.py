@@ -34,6 +34,7 @@ __all__ = [
     "collide",
     "collider_distances",
     "resolve_world_poses",
+    "CollisionStage",
 ]
 
 DEFAULT_FRICTION = 0.5
@@ -539,3 +540,33 @@ def collide(x: torch.Tensor, v: torch.Tensor, dt: float, colliders: Sequence[Col
         xf.index_put_((bi, ki), x_new)
         vf.index_put_((bi, ki), v_new)
     return xf.reshape(shape), vf.reshape(shape)
+
+
+class CollisionStage:
+    """The collision stage of a frame, in the form ``integrator.step`` runs its stages.
+
+    ``stage(x, v, head_pose, dt, state) -> (x, v)``: resolves the colliders' world poses for the
+    end of the frame (:func:`resolve_world_poses` with ``head_pose`` and the per-frame
+    :attr:`collider_poses`) and applies :func:`collide`. Pinned particles are left alone.
+
+    Args:
+        colliders: sequence of :class:`Collider` (non-empty; a scene without colliders should
+            not add the stage at all).
+        free: (N,) bool, True for simulated particles (e.g. ``~model.pinned``); None = all.
+
+    Attributes:
+        collider_poses: overrides for the next frames (see :func:`resolve_world_poses`); set it
+            before a step to animate colliders, ``None`` to use each ``collider.pose``.
+    """
+
+    def __init__(self, colliders: Sequence[Collider], free: Optional[torch.Tensor] = None):
+        self.colliders = list(colliders)
+        if not self.colliders:
+            raise ValueError("CollisionStage needs at least one collider")
+        self.free = free
+        self.collider_poses: Optional[Union[Sequence[Optional[Pose]], Mapping[int, Pose]]] = None
+
+    def __call__(self, x: torch.Tensor, v: torch.Tensor, head_pose: Optional[Pose], dt: float, state=None
+                 ) -> Tuple[torch.Tensor, torch.Tensor]:
+        poses = resolve_world_poses(self.colliders, head_pose, self.collider_poses)
+        return collide(x, v, dt, self.colliders, poses, free=self.free)
