@@ -40,7 +40,8 @@ Choices (written down here because the paper leaves them open):
   interpolation), blended ``flip · v_flip + (1 − flip) · v_pic``.
 * **Positions.** The stage replaces the frame's end velocity ``v`` by ``v'`` and moves the
   positions consistently with the backward-Euler position update ``x = xⁿ + Δt v``:
-  ``x' = x + Δt (v' − v)``.
+  ``x' = x + Δt (v' − v)``. (Detailed collisions, below, move positions and velocities by
+  separate amounts, so that resolving an overlap does not inject a separating velocity.)
 * **Detailed collisions** (``detailed_collisions=True``): a sort-based spatial hash of cell
   size ``collision_radius`` in the head frame; each particle looks at up to
   ``collision_max_per_cell`` particles in each of its 27 neighbouring hash cells (more than that
