@@ -68,7 +68,8 @@ def sync(device):
 
 
 def bench_sdf_build(mesh, resolutions):
-    rows = []
+    """Returns (table rows, {resolution: SDFGrid})."""
+    rows, grids = [], {}
     with tempfile.TemporaryDirectory() as tmp:
         for res in resolutions:
             t0 = time.perf_counter()
@@ -77,11 +78,12 @@ def bench_sdf_build(mesh, resolutions):
             t0 = time.perf_counter()
             SDFGrid.from_mesh(mesh, resolution=res, cache=True, cache_dir=tmp)
             load = time.perf_counter() - t0
+            grids[res] = grid
             rows.append(dict(resolution=res, shape=list(grid.shape), voxel_mm=grid.voxel_size * 1e3,
                              faces=len(mesh.faces), build_s=build, cached_load_s=load))
             print(f"SDF {res:4d}: {'x'.join(map(str, grid.shape))}, voxel {grid.voxel_size * 1e3:.2f} mm, "
                   f"build {build:.2f} s, cached load {load * 1e3:.0f} ms", flush=True)
-    return rows
+    return rows, grids
 
 
 def make_inputs(base, strands, device, dtype, seed=0):
@@ -131,9 +133,11 @@ def main():
     print(desc, flush=True)
 
     mesh = default_head()
-    sdf_rows = bench_sdf_build(mesh, args.resolutions)
+    sdf_rows, grids = bench_sdf_build(mesh, args.resolutions)
 
-    grid = SDFGrid.from_mesh(mesh, resolution=args.collider_resolution)  # user cache (built above or before)
+    grid = grids.get(args.collider_resolution)
+    if grid is None:
+        grid = SDFGrid.from_mesh(mesh, resolution=args.collider_resolution)  # the user's disk cache
     head_collider = MeshCollider(grid, friction=0.5)
     hand = SphereCollider((0.0, 0.0, 0.0), 0.06, friction=0.3)
     hand_pose = Pose.from_rotvec([0.0, 0.0, 0.0], [0.05, 1.55, 0.12], [-1.0, 0.0, -0.5], [0.0, 0.0, 0.0],
@@ -165,7 +169,6 @@ def main():
                              ns_per_particle=ms * 1e6 / (strands * args.particles)))
             print(f"{strands:7d} x {args.particles}  {name:20s} {ms:9.2f} ms/frame  "
                   f"({contacts * 100:.1f} % of free particles in contact, {n} reps)", flush=True)
-        del x, v
 
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

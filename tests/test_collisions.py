@@ -57,7 +57,8 @@ def test_analytic_sdf_values_and_normals():
     c = torch.tensor([0.01, 0.02, -0.01], dtype=torch.float64)
     torch.testing.assert_close(sph.distance(p), (p - c).norm(dim=-1) - 0.1)
     # capsule against a dense sampling of its axis segment
-    a, b = torch.tensor([-0.05, 0.0, 0.0], dtype=torch.float64), torch.tensor([0.08, 0.03, 0.01], dtype=torch.float64)
+    a = torch.tensor([-0.05, 0.0, 0.0], dtype=torch.float64)
+    b = torch.tensor([0.08, 0.03, 0.01], dtype=torch.float64)
     seg = a + torch.linspace(0, 1, 20001, dtype=torch.float64)[:, None] * (b - a)  # 7 µm apart
     ref = torch.cdist(p, seg).min(-1).values - 0.04
     torch.testing.assert_close(cap.distance(p), ref, atol=4e-6, rtol=0)
