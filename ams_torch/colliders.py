@@ -386,23 +386,28 @@ def resolve_world_poses(colliders: Sequence[Collider], head_pose: Optional[Pose]
 
 
 def _flat_pose(pose: Optional[Pose], batch: torch.Size, x: torch.Tensor):
-    """Pose tensors broadcast to x's batch dims and flattened: R (B,3,3), T (B,3), v/ω (B,3) or None."""
+    """Pose tensors broadcast to x's batch dims and flattened: R (B,3,3), T (B,3), v/ω (B,3) or None.
+
+    As in :class:`Pose`, the pose's batch dims are a prefix of the particles' batch dims
+    (a pose (B, 3, 3) applies to every scene of x (B, C, S, N, 3)).
+    """
     if pose is None:
         pose = Pose.identity()
     pose = pose.to(device=x.device, dtype=x.dtype)
-    pb = pose.rotation.shape[:-2]
-    try:
-        shape = torch.broadcast_shapes(pb, batch)
-    except RuntimeError as err:
-        raise ValueError(f"collider pose batch shape {tuple(pb)} does not match the particles' batch "
-                         f"shape {tuple(batch)}") from err
-    if shape != batch:
-        raise ValueError(f"collider pose batch shape {tuple(pb)} does not match the particles' batch "
+    pb = tuple(pose.rotation.shape[:-2])
+    extra = len(batch) - len(pb)
+    padded = pb + (1,) * max(extra, 0)
+    if extra < 0 or any(p not in (1, b) for p, b in zip(padded, batch)):
+        raise ValueError(f"collider pose batch shape {pb} does not match the particles' batch "
                          f"shape {tuple(batch)}")
     b = int(math.prod(batch)) if len(batch) else 1
 
     def flat(t, tail):
-        return None if t is None else t.expand(tuple(batch) + tail).reshape((b,) + tail)
+        if t is None:
+            return None
+        own = tuple(t.shape[:t.dim() - len(tail)])  # this field's batch dims (a prefix of x's)
+        t = t.reshape(own + (1,) * (len(batch) - len(own)) + tail)
+        return t.expand(tuple(batch) + tail).reshape((b,) + tail)
 
     lin = flat(pose.linear_velocity, (3,)) if pose.has_velocity else None
     ang = flat(pose.angular_velocity, (3,)) if pose.has_velocity else None

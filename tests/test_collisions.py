@@ -239,6 +239,11 @@ def test_batched_poses_match_one_at_a_time():
         torch.testing.assert_close(xb[i], xi)
         torch.testing.assert_close(vb[i], vi)
     assert not torch.equal(xb, x)
+    # pose batch dims are a prefix of the particles' batch dims: (3,) poses for (3, 2) scenes
+    x2 = x[:, None].expand(3, 2, 50, 6, 3)
+    xc, vc = collide(x2, v[:, None].expand_as(x2), DT, [ball], [batched])
+    torch.testing.assert_close(xc, xb[:, None].expand_as(xc))
+    torch.testing.assert_close(vc, vb[:, None].expand_as(vc))
 
 
 def test_no_colliders_is_a_no_op_and_gradients_flow():
