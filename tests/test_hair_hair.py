@@ -11,6 +11,16 @@ from ams_torch.pose import Pose
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 DT = 1.0 / 60.0
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_cpu_thread():
+    """These tests use small tensors; on a CPU shared with other jobs, two OpenMP threads made
+    them ~15× slower (each parallel op waits for a busy core). Restored afterwards."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
 MASS = 1e-6  # kg per particle
 
 
@@ -210,14 +220,14 @@ def test_batched_equals_one_scene_at_a_time():
 def test_wisps_pushed_together_keep_density_bounded_and_fewer_close_pairs():
     """Two wisps driven into each other (a damped pull of every particle toward the plane x = 0,
     integrated explicitly in the test). Without the stage they collapse into one sheet."""
-    x0 = two_wisps()
+    x0 = two_wisps(strands=48)
     hair_radius = 1e-3
     bound = 1.3  # peak density stays below 1.3 × the target with the stage
 
     def run(grid, ref):
         x, v = x0.clone(), torch.zeros_like(x0)
         peak = 0.0
-        for _ in range(30):
+        for _ in range(24):
             a = torch.zeros_like(x)
             a[..., 0] = -100.0 * x[..., 0] - 20.0 * v[..., 0]
             v = v + DT * a
@@ -231,9 +241,9 @@ def test_wisps_pushed_together_keep_density_bounded_and_fewer_close_pairs():
     target = float(grid.target_density)
     peak_off, pairs_off = run(None, grid)
     peak_on, pairs_on = run(grid, grid)
-    assert peak_off > 1.5 * target  # the scenario does compress
-    assert peak_on < bound * target
-    assert pairs_on < 0.5 * pairs_off
+    assert peak_off > 1.4 * target  # the scenario does compress (measured ≈ 1.6–1.7)
+    assert peak_on < bound * target  # measured ≈ 1.1
+    assert pairs_on < 0.5 * pairs_off  # measured ≈ 0.15–0.3
     # detailed collisions take out the remaining close pairs
     grid_c = HairHair(resolution=16, detailed_collisions=True, collision_radius=2 * hair_radius).build(x0, MASS)
     peak_c, pairs_c = run(grid_c, grid)
