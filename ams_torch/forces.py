@@ -75,12 +75,18 @@ def integrity_force(x: torch.Tensor, ghost: torch.Tensor, stiffness) -> torch.Te
     return kappa * (ghost - x)
 
 
-def angular_force(x: torch.Tensor, ghost: torch.Tensor, stiffness, eps: float = 1e-12):
+def angular_force(x: torch.Tensor, ghost: torch.Tensor, stiffness, reaction: bool = True, eps: float = 1e-12):
     """Angular spring rotating each segment toward its ghost segment (SPEC §3).
 
     With ``e = x_{i+1} − x_i``, ``g = y_{i+1} − y_i`` and θ = angle(e, g), the force on
     x_{i+1} is ``κ_α θ t̂`` where t̂ is the unit part of ĝ orthogonal to ê. θ = 0 or e ∥ g
-    (or a zero-length segment) gives exactly zero force. One-way: nothing acts on x_i.
+    (or a zero-length segment) gives exactly zero force. The ghosts never feel the strand.
+
+    ``reaction=True`` (the library default) also puts ``−κ_α θ t̂`` on x_i, so the spring is
+    a pure torque on the segment (a couple, no net force) and derives from the potential
+    ``½ κ_α |e| θ²``. ``reaction=False`` is the paper's literal one-particle force: it is not
+    conservative (a follower load), and a free wisp under it flutters without settling
+    (measured in tests/test_ablations.py), growing worse as the time step shrinks.
 
     Args:
         x, ghost: (..., S, N, 3) m.
@@ -88,7 +94,7 @@ def angular_force(x: torch.Tensor, ghost: torch.Tensor, stiffness, eps: float = 
     Returns:
         force: (..., S, N, 3) N (zero on particle 0).
         tangent: (..., S, N−1, 3, 3) N/m, ``κ_α/|e| (I − êêᵀ)``: the (positive semi-definite)
-            stiffness of the force with respect to x_{i+1}, for the implicit step.
+            stiffness of the force with respect to the segment vector e, for the implicit step.
     """
     e_hat, e_len = safe_normalize(x[..., 1:, :] - x[..., :-1, :])
     g_hat, _ = safe_normalize(ghost[..., 1:, :] - ghost[..., :-1, :])
@@ -99,6 +105,8 @@ def angular_force(x: torch.Tensor, ghost: torch.Tensor, stiffness, eps: float = 
     kappa = torch.as_tensor(stiffness, dtype=x.dtype, device=x.device)
     f = (kappa * theta)[..., None] * t_hat
     force = F.pad(f, (0, 0, 1, 0))
+    if reaction:
+        force = force - F.pad(f, (0, 0, 0, 1))
     inv_len = torch.where(e_len > 0, 1.0 / torch.where(e_len > 0, e_len, torch.ones_like(e_len)),
                           torch.zeros_like(e_len))
     eye = torch.eye(3, dtype=x.dtype, device=x.device)

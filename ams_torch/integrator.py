@@ -99,13 +99,22 @@ def assemble_system(model: Model, params: Params, x: torch.Tensor, v: torch.Tens
         diag = diag + (h * h) * ki * eye
         rhs = rhs + (h * h) * (ki[..., 0] if ki.dim() > 0 else ki) * ghost_velocity
     if not _is_zero(params.angular_stiffness):
-        f_a, tangent = forces.angular_force(x, ghost, params.angular_stiffness)
+        f_a, tangent = forces.angular_force(x, ghost, params.angular_stiffness, params.angular_reaction)
         force = force + f_a
         if params.implicit_angular:
-            ht = (h * h) * tangent  # acts on particle i+1, relative to v_i and the ghost motion
-            rel = v[..., :-1, :] + ghost_velocity[..., 1:, :] - ghost_velocity[..., :-1, :]
-            diag = diag + _pad_n(ht, 1, 0)
-            rhs = rhs + F.pad(torch.einsum("...ij,...j->...i", ht, rel), (0, 0, 1, 0))
+            ht = (h * h) * tangent
+            dw = ghost_velocity[..., 1:, :] - ghost_velocity[..., :-1, :]
+            if params.angular_reaction:
+                # a couple on (i, i+1): same band structure as an edge spring with D → I − êêᵀ
+                diag = diag + _pad_n(ht, 0, 1) + _pad_n(ht, 1, 0)
+                offdiag[0] = offdiag[0] - _pad_n(ht, 1, 0)
+                g = torch.einsum("...ij,...j->...i", ht, dw)
+                rhs = rhs + F.pad(g, (0, 0, 1, 0)) - F.pad(g, (0, 0, 0, 1))
+            else:
+                # force on i+1 only: diagonal tangent, neighbour velocity taken explicitly
+                rel = v[..., :-1, :] + dw
+                diag = diag + _pad_n(ht, 1, 0)
+                rhs = rhs + F.pad(torch.einsum("...ij,...j->...i", ht, rel), (0, 0, 1, 0))
     rhs = rhs + h * force
     blocks = torch.stack([diag] + [o.expand_as(diag) for o in offdiag], -3)
 

@@ -49,6 +49,9 @@ class Params:
         sag_free: offset the ghosts so the integrity springs hold the weight at t = 0 (§5).
         implicit_angular: add the angular spring's tangent stiffness κ_α/|e| (I − êêᵀ) to
             the matrix (SPD, keeps stiff angular springs stable at large dt).
+        angular_reaction: apply the angular spring as a couple (−κ_α θ t̂ on x_i as well as
+            +κ_α θ t̂ on x_{i+1}); False is the paper's one-particle force, which is not
+            conservative and makes free wisps flutter (see :func:`forces.angular_force`).
         inextensibility: apply follow-the-leader length projection after the substeps.
         ftl_damping: Müller et al. 2012 velocity-correction factor s_damping ∈ [0, 1].
         max_relative_speed: m/s; a particle faster than this relative to the head's
@@ -70,6 +73,7 @@ class Params:
     num_pinned: int = 2
     sag_free: bool = True
     implicit_angular: bool = True
+    angular_reaction: bool = True  # see forces.angular_force: the one-way form flutters
     inextensibility: bool = True
     ftl_damping: float = 0.9
     max_relative_speed: float = 1.0e3

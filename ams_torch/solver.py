@@ -160,5 +160,6 @@ def banded_matvec(blocks: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
 def solve_banded_dense(blocks: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
     """Dense reference: expand to (..., 3N, 3N) and call ``torch.linalg.solve`` (tests only)."""
     _check(blocks, rhs)
-    a = banded_to_dense(blocks)
-    return torch.linalg.solve(a, rhs.reshape(rhs.shape[:-2] + (-1,))).reshape(rhs.shape)
+    a = banded_to_dense(blocks).contiguous()
+    b = rhs.reshape(rhs.shape[:-2] + (-1, 1)).contiguous()  # explicit column: no vector/matrix ambiguity
+    return torch.linalg.solve(a, b).reshape(rhs.shape)
