@@ -1,0 +1,615 @@
+"""Procedural hair growth (SPEC §9; supplement "Procedural Growth", Eq. 4–7) and named presets.
+
+Roots are uniform random samples on the triangles of a mesh region. The initial direction
+``p_dir⁰`` of a strand is the barycentric blend of its triangle's vertex normals plus a noise
+vector with entries from U(−1, 1) (scaled by ``noise``). Then, for i = 1 … K (K growth steps):
+
+    p_grav^i  = (0, −i p_γ, 0)
+    p_dir^i'  = p_dir^{i−1} + p_grav^{i−1} · max(p_Γ, 1 − |p_dir^{i−1} · (0, 1, 0)|)
+    H^i       = (p_h cos(i p_freq + φ), 1, p_h sin(i p_freq + φ))
+    p_dir^i   = p_dir^i' + p_Ω (p_dir^i' − H^i)
+    x_i       = x_{i−1} + p_τ · normalize(p_dir^i)
+
+exactly as written (``p_dir`` is not normalised between steps, as in the paper). φ is a
+per-strand helix phase, 0 unless ``phase_jitter`` is set (the paper has none, so every strand
+curls in step with the others).
+
+Parameters (keyword names; the paper's symbols are accepted as aliases, see ``ALIASES``):
+
+========================  ===========  ========  =================================================
+name                      paper        default   meaning
+========================  ===========  ========  =================================================
+``step``                  p_τ          0.005     segment length of a growth step, metres
+``droop``                 p_γ          0.002     gravity influence (dimensionless)
+``helix_radius``          p_h          0.0       helix radius (dimensionless; sets curliness)
+``helix_freq``            p_freq       1.0       helix angle per step, radians
+``spiral``                p_Ω          0.017     spiral impact factor
+``gravity_floor``         p_Γ          0.2       lower bound of the gravity factor
+``noise``                 —            1.0       scale of the U(−1, 1)³ noise of p_dir⁰ (paper: 1)
+``root_min_cos``          —            0.3       p_dir⁰ makes at least this cosine with the normal
+``comb``                  —            None      vector (3,) or ``f(roots, normals) → (S, 3)`` added to p_dir⁰
+``phase_jitter``          —            0.0       φ ~ U(−phase_jitter, phase_jitter), radians
+``helix_radius_jitter``   —            0.0       p_h · (1 + U(−j, j)) per strand
+``length``                —            None      strand length(s) in metres, see below
+``length_jitter``         —            0.0       lengths · (1 − U(0, j)) per strand
+``steps``                 —            None      K; default N − 1, or enough for ``length``
+``collide``               —            True      keep grown points out of the mesh (SDF)
+``margin``                —            0.002     clearance kept from the mesh when colliding, m
+``sdf_resolution``        —            128       resolution of the SDF grid built for collisions
+========================  ===========  ========  =================================================
+
+Lengths. Without ``length`` a strand grows K = N − 1 steps (N = ``particles``), so its length is
+exactly K·p_τ and no resampling happens: p_τ sets the length, as in the paper's Figures 3–4.
+With ``length`` (a float, an (S,) array or a callable ``f(roots (S, 3), normals (S, 3)) → (S,)``,
+metres) the strands grow ``ceil(max length / p_τ)`` steps at p_τ and are then cut at their
+length and resampled to N particles uniformly in arc length, keeping that length (a haircut:
+short strands are the first part of a long one, curl scale unchanged). Note that the curl
+period is 2π p_τ / p_freq metres of strand; resampling to fewer particles than growth steps
+undersamples curls.
+
+Collisions. With ``collide`` (default) every grown point whose signed distance to the mesh
+is below ``margin`` is pushed out along the SDF normal, the step length is restored, and the
+inward component of ``p_dir`` is removed (the strand slides over the surface instead of
+re-entering it). This is needed because droop bends strands back onto the head. Roots lie
+on the surface (σ = 0); every other particle ends at σ ≥ ``margin``/2 on the SDF grid
+(tested with exact inside/outside queries on the mesh).
+
+Roots. ``per_triangle=p_n`` samples p_n roots per selected triangle (the paper's literal
+scheme; S = p_n × triangles). ``strands=S`` instead draws S roots by area-weighted sampling:
+each root picks a triangle with probability proportional to its area, then a uniform point
+on it — the same distribution as p_n per unit area, with an exact strand count.
+
+Determinism: every random number comes from one ``numpy.random.Generator(PCG64(seed))`` drawn
+in a fixed order, and the growth runs in float64 on the CPU, so a seed gives the same groom
+bit for bit.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields, replace
+from typing import Any, Callable, Dict, Optional, Sequence, Union
+
+import numpy as np
+import torch
+
+from .groom import Groom, resample_strands, triangle_frames
+
+__all__ = ["GrowthParams", "ALIASES", "grow", "grow_from_roots", "preset", "PRESETS", "sample_roots"]
+
+
+@dataclass(frozen=True)
+class GrowthParams:
+    """Parameters of procedural growth; see the module docstring for the table of meanings.
+
+    Units: ``step``, ``margin`` and ``length`` metres; ``helix_freq`` and ``phase_jitter``
+    radians; the others dimensionless.
+    """
+
+    step: float = 0.005
+    droop: float = 0.002
+    helix_radius: float = 0.0
+    helix_freq: float = 1.0
+    spiral: float = 0.017
+    gravity_floor: float = 0.2
+    noise: float = 1.0
+    root_min_cos: float = 0.3
+    comb: Any = None
+    phase_jitter: float = 0.0
+    helix_radius_jitter: float = 0.0
+    length: Any = None
+    length_jitter: float = 0.0
+    steps: Optional[int] = None
+    collide: bool = True
+    margin: float = 0.002
+    sdf_resolution: int = 128
+
+    def __post_init__(self):
+        if not self.step > 0:
+            raise ValueError(f"growth step p_τ must be positive, got {self.step}")
+        if self.steps is not None and int(self.steps) < 1:
+            raise ValueError(f"steps must be ≥ 1, got {self.steps}")
+        if not -1.0 <= self.root_min_cos < 1.0:
+            raise ValueError(f"root_min_cos must be in [−1, 1), got {self.root_min_cos}")
+        if self.margin < 0:
+            raise ValueError(f"margin must be ≥ 0, got {self.margin}")
+
+    @staticmethod
+    def make(**kwargs) -> "GrowthParams":
+        """Build from keywords, accepting the paper's symbols (``p_tau``, ``p_h``, …) too."""
+        names = {f.name for f in fields(GrowthParams)}
+        clean: Dict[str, Any] = {}
+        for key, value in kwargs.items():
+            name = ALIASES.get(key, key)
+            if name not in names:
+                raise TypeError(f"unknown growth parameter {key!r}; known: {sorted(names | set(ALIASES))}")
+            if name in clean:
+                raise TypeError(f"growth parameter {name!r} given twice (as {key!r} too)")
+            clean[name] = value
+        return GrowthParams(**clean)
+
+
+#: The paper's symbols → :class:`GrowthParams` field names.
+ALIASES = {
+    "p_tau": "step", "p_τ": "step",
+    "p_gamma": "droop", "p_γ": "droop",
+    "p_h": "helix_radius",
+    "p_freq": "helix_freq",
+    "p_Omega": "spiral", "p_Ω": "spiral", "p_omega": "spiral",
+    "p_Gamma": "gravity_floor", "p_Γ": "gravity_floor",
+}
+
+
+# --------------------------------------------------------------------------------------------
+# roots
+# --------------------------------------------------------------------------------------------
+def _mesh_arrays(mesh):
+    if isinstance(mesh, (tuple, list)) and len(mesh) == 2:
+        import trimesh
+        mesh = trimesh.Trimesh(np.asarray(mesh[0], dtype=np.float64), np.asarray(mesh[1], dtype=np.int64),
+                               process=False)
+    return mesh, np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+
+
+def _region_faces(mesh, region, n_faces: int) -> np.ndarray:
+    if region is None or (isinstance(region, str) and region == "all"):
+        return np.arange(n_faces, dtype=np.int64)
+    if isinstance(region, str):
+        regions = getattr(mesh, "metadata", {}).get("regions", {}) if hasattr(mesh, "metadata") else {}
+        if region not in regions:
+            raise ValueError(f"mesh has no region {region!r} (known: {sorted(regions)}); pass face indices, "
+                             f"'all' or None")
+        faces = np.asarray(regions[region], dtype=np.int64)
+    else:
+        faces = np.asarray(region)
+        if faces.dtype == bool:
+            if faces.shape != (n_faces,):
+                raise ValueError(f"boolean region mask must have shape ({n_faces},), got {faces.shape}")
+            faces = np.flatnonzero(faces)
+        faces = faces.astype(np.int64).reshape(-1)
+    if faces.size == 0:
+        raise ValueError(f"region {region if isinstance(region, str) else '(indices)'} selects no faces")
+    if faces.min() < 0 or faces.max() >= n_faces:
+        raise ValueError(f"region face indices must lie in [0, {n_faces}); got [{faces.min()}, {faces.max()}]")
+    return faces
+
+
+def sample_roots(mesh, region="scalp", strands: Optional[int] = None, per_triangle: Optional[int] = None,
+                 rng: Optional[np.random.Generator] = None, seed: int = 0) -> Dict[str, np.ndarray]:
+    """Sample root points on a mesh region.
+
+    Args:
+        mesh: ``trimesh.Trimesh`` (or ``(vertices (V, 3), faces (F, 3))``), metres.
+        region: name in ``mesh.metadata["regions"]``, face indices / bool mask, or
+            ``None``/``"all"`` for every face.
+        strands: S roots by area-weighted triangle choice, then uniform on the triangle.
+        per_triangle: p_n roots on every selected triangle (S = p_n × triangles), the paper's scheme.
+        rng / seed: the random generator (default ``numpy.random.default_rng(seed)``).
+
+    Returns a dict of float64/int64 arrays: ``triangles`` (S,), ``barycentrics`` (S, 3),
+    ``face_vertices`` (S, 3), ``positions`` (S, 3) metres, ``normals`` (S, 3) unit blended
+    vertex normals.
+    """
+    mesh, v, f = _mesh_arrays(mesh)
+    rng = np.random.default_rng(seed) if rng is None else rng
+    faces = _region_faces(mesh, region, len(f))
+    if (strands is None) == (per_triangle is None):
+        raise ValueError("give exactly one of strands= (area-weighted) and per_triangle= (p_n per triangle)")
+    if per_triangle is not None:
+        p_n = int(per_triangle)
+        if p_n < 1:
+            raise ValueError(f"per_triangle must be ≥ 1, got {per_triangle}")
+        tri = np.repeat(faces, p_n)
+    else:
+        s = int(strands)
+        if s < 1:
+            raise ValueError(f"strands must be ≥ 1, got {strands}")
+        corners = v[f[faces]]
+        area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+        if not area.sum() > 0:
+            raise ValueError("the selected region has zero area")
+        cdf = np.cumsum(area)
+        cdf /= cdf[-1]
+        pick = np.searchsorted(cdf, rng.random(s), side="right")
+        tri = faces[np.minimum(pick, len(faces) - 1)]
+    r = rng.random((len(tri), 2))
+    sq = np.sqrt(r[:, 0])
+    bary = np.stack([1.0 - sq, sq * (1.0 - r[:, 1]), sq * r[:, 1]], axis=1)
+    fv = f[tri]
+    pos = np.einsum("sk,skd->sd", bary, v[fv])
+    vn = np.asarray(mesh.vertex_normals, dtype=np.float64)
+    nrm = np.einsum("sk,skd->sd", bary, vn[fv])
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-30)
+    return dict(triangles=tri, barycentrics=bary, face_vertices=fv, positions=pos, normals=nrm)
+
+
+# --------------------------------------------------------------------------------------------
+# the growth recurrence
+# --------------------------------------------------------------------------------------------
+class _Collider:
+    """Signed distance + outward normal of the mesh in float64 numpy (wraps an SDFGrid)."""
+
+    def __init__(self, sdf):
+        self.sdf = sdf.to(dtype=torch.float64) if hasattr(sdf, "to") else sdf
+
+    def query(self, x: np.ndarray):
+        sigma, normal = self.sdf.distance_and_normal(torch.from_numpy(x))
+        return sigma.numpy(), normal.numpy()
+
+    def push_out(self, x: np.ndarray, margin: float):
+        """Move points with σ < margin out along the normal to σ ≈ margin; returns (x, moved, normal)."""
+        sigma, normal = self.query(x)
+        moved = sigma < margin
+        if moved.any():
+            x = x.copy()
+            x[moved] += (margin - sigma[moved])[:, None] * normal[moved]
+        return x, moved, normal
+
+
+def _normalize(a: np.ndarray) -> np.ndarray:
+    return a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-300)
+
+
+def grow_from_roots(roots, directions, steps: int, params: Optional[GrowthParams] = None, *,
+                    phase=None, helix_radius=None, collider=None) -> np.ndarray:
+    """Run the growth recurrence of SPEC §9 from given roots and initial directions.
+
+    Args:
+        roots: (S, 3) metres, particle 0 of every strand.
+        directions: (S, 3) p_dir⁰ (not necessarily unit; its length matters, as in the paper).
+        steps: K, growth steps; the strands get K + 1 points.
+        params: :class:`GrowthParams` (``step``, ``droop``, ``helix_radius``, ``helix_freq``,
+            ``spiral``, ``gravity_floor``, ``margin`` are used here).
+        phase: optional (S,) helix phase φ, radians (default 0).
+        helix_radius: optional (S,) per-strand p_h (default ``params.helix_radius``).
+        collider: optional object with ``distance_and_normal(points (M, 3) tensor)`` (e.g. an
+            ``SDFGrid``); grown points are then kept at σ ≥ ``params.margin`` as described in
+            the module docstring.
+
+    Returns:
+        (S, K + 1, 3) float64 array, metres; consecutive points are ``step`` apart (up to the
+        rare final push-out of a point the step-preserving projection could not free).
+    """
+    p = GrowthParams() if params is None else params
+    x0 = np.asarray(roots, dtype=np.float64).reshape(-1, 3)
+    d = np.asarray(directions, dtype=np.float64).reshape(-1, 3).copy()
+    s = x0.shape[0]
+    k_steps = int(steps)
+    phi = np.zeros(s) if phase is None else np.asarray(phase, dtype=np.float64).reshape(s)
+    ph = np.full(s, float(p.helix_radius)) if helix_radius is None else np.asarray(helix_radius, np.float64).reshape(s)
+    col = None if collider is None else (collider if isinstance(collider, _Collider) else _Collider(collider))
+    out = np.empty((s, k_steps + 1, 3), dtype=np.float64)
+    out[:, 0] = x0
+    x = x0
+    tau, omega = float(p.step), float(p.spiral)
+    for i in range(1, k_steps + 1):
+        grav_y = -(i - 1) * p.droop  # p_grav^{i−1} = (0, −(i−1) p_γ, 0)
+        factor = np.maximum(p.gravity_floor, 1.0 - np.abs(d[:, 1]))
+        dp = d.copy()
+        dp[:, 1] += grav_y * factor
+        ang = i * p.helix_freq + phi
+        h = np.stack([ph * np.cos(ang), np.ones(s), ph * np.sin(ang)], axis=1)
+        d = dp + omega * (dp - h)
+        step_dir = _normalize(d)
+        xn = x + tau * step_dir
+        if col is not None:
+            hit_any = np.zeros(s, dtype=bool)
+            normal = None
+            for _ in range(4):  # push out, restore the step length, repeat
+                xn, moved, normal_it = col.push_out(xn, p.margin)
+                if not moved.any():
+                    break
+                hit_any |= moved
+                normal = normal_it if normal is None else np.where(moved[:, None], normal_it, normal)
+                xn = x + tau * _normalize(xn - x)
+            if hit_any.any():
+                # a point still inside after restoring the length: accept a slightly longer step
+                xn, _, _ = col.push_out(xn, 0.5 * p.margin)
+                # slide: drop the inward component of p_dir where the strand touched the surface
+                inward = np.minimum((d * normal).sum(1), 0.0)
+                d = np.where(hit_any[:, None], d - inward[:, None] * normal, d)
+        out[:, i] = xn
+        x = xn
+    return out
+
+
+def _initial_directions(normals: np.ndarray, noise: np.ndarray, min_cos: float) -> np.ndarray:
+    """p_dir⁰ = n + noise, with the normal component raised so that cos(p_dir⁰, n) ≥ min_cos."""
+    d = normals + noise
+    a = (d * normals).sum(1)
+    t = d - a[:, None] * normals
+    tn = np.linalg.norm(t, axis=1)
+    need = min_cos * tn / math.sqrt(1.0 - min_cos * min_cos)
+    a_new = np.where(a < need, need, a)
+    return t + a_new[:, None] * normals
+
+
+def _sdf_for(mesh, resolution: int):
+    from .sdf import SDFGrid
+    return SDFGrid.from_mesh(mesh, resolution=int(resolution))
+
+
+def _resolve_lengths(length, roots: np.ndarray, normals: np.ndarray) -> Optional[np.ndarray]:
+    if length is None:
+        return None
+    if callable(length):
+        out = np.asarray(length(roots, normals), dtype=np.float64)
+    else:
+        out = np.asarray(length, dtype=np.float64)
+    out = np.broadcast_to(out, (roots.shape[0],)).copy()
+    if not np.all(np.isfinite(out)) or out.min() <= 0:
+        raise ValueError("strand lengths must be finite and positive (metres)")
+    return out
+
+
+def grow(mesh, region="scalp", strands: Optional[int] = None, particles: int = 32, seed: int = 0, *,
+         per_triangle: Optional[int] = None, sdf=None, **growth_params) -> Groom:
+    """Grow a groom on a mesh region with the procedural scheme of SPEC §9.
+
+    Args:
+        mesh: ``trimesh.Trimesh`` in metres, head frame (+y up), e.g.
+            ``ams_torch.head.default_head()``; or ``(vertices (V, 3), faces (F, 3))``.
+        region: ``mesh.metadata["regions"]`` name (``"scalp"``, ``"beard"``), face indices or
+            bool mask (F,), or ``None``/``"all"``.
+        strands: S, number of strands (area-weighted root sampling). Default 1000 when
+            neither ``strands`` nor ``per_triangle`` is given.
+        particles: N, particles per output strand (≥ 2).
+        seed: random seed; the same seed gives the same groom bit for bit.
+        per_triangle: p_n roots per selected triangle (the paper's scheme) instead of ``strands``.
+        sdf: collision field to reuse (``SDFGrid`` of this mesh); built from the mesh with
+            ``sdf_resolution`` (and cached on disk by :mod:`ams_torch.sdf`) when ``collide``.
+        **growth_params: :class:`GrowthParams` fields or the paper's symbols (``p_tau``,
+            ``p_gamma``, ``p_h``, ``p_freq``, ``p_Omega``, ``p_Gamma``).
+
+    Returns:
+        :class:`Groom` with ``rest_positions`` (S, N, 3) float32 metres in the mesh frame,
+        roots bound to their triangles, and ``metadata`` holding the parameters and seed.
+    """
+    params = GrowthParams.make(**growth_params)
+    particles = int(particles)
+    if particles < 2:
+        raise ValueError(f"particles must be ≥ 2, got {particles}")
+    if strands is None and per_triangle is None:
+        strands = 1000
+    mesh, verts, faces = _mesh_arrays(mesh)
+    rng = np.random.default_rng(seed)
+    root = sample_roots(mesh, region, strands=strands, per_triangle=per_triangle, rng=rng)
+    s = root["positions"].shape[0]
+    noise = rng.uniform(-1.0, 1.0, (s, 3)) * params.noise
+    phase = rng.uniform(-1.0, 1.0, s) * params.phase_jitter
+    radius = params.helix_radius * (1.0 + rng.uniform(-1.0, 1.0, s) * params.helix_radius_jitter)
+    length_u = rng.random(s)
+    if params.comb is not None:
+        comb = params.comb(root["positions"], root["normals"]) if callable(params.comb) else params.comb
+        noise = noise + np.broadcast_to(np.asarray(comb, dtype=np.float64), (s, 3))
+    dirs = _initial_directions(root["normals"], noise, params.root_min_cos)
+
+    lengths = _resolve_lengths(params.length, root["positions"], root["normals"])
+    if lengths is not None:
+        lengths = lengths * (1.0 - params.length_jitter * length_u)
+    elif params.length_jitter > 0:
+        k_nat = params.steps if params.steps is not None else particles - 1
+        lengths = k_nat * params.step * (1.0 - params.length_jitter * length_u)
+    if params.steps is not None:
+        k_steps = int(params.steps)
+    elif lengths is None:
+        k_steps = particles - 1
+    else:
+        k_steps = max(1, int(math.ceil(float(lengths.max()) / params.step - 1e-9)))
+
+    collider = None
+    if params.collide:
+        collider = _Collider(sdf if sdf is not None else _sdf_for(mesh, params.sdf_resolution))
+    pts = grow_from_roots(root["positions"], dirs, k_steps, params, phase=phase, helix_radius=radius,
+                          collider=collider)
+    if lengths is not None or k_steps + 1 != particles:
+        pts = resample_strands(pts, particles, keep_length=True, lengths=lengths)
+        if collider is not None:  # resampling moves points by ~chord error: keep them out
+            body, _, _ = collider.push_out(pts[:, 1:].reshape(-1, 3), 0.5 * params.margin)
+            pts[:, 1:] = body.reshape(s, particles - 1, 3)
+    corners = torch.as_tensor(verts[root["face_vertices"]])
+    meta = dict(
+        generator="ams_torch.grow",
+        seed=int(seed),
+        region=region if isinstance(region, str) or region is None else "custom",
+        strands=int(s),
+        particles=particles,
+        per_triangle=None if per_triangle is None else int(per_triangle),
+        growth_steps=k_steps,
+        params={k: (("callable" if callable(v) else np.asarray(v, dtype=np.float64).tolist()) if k in ("length", "comb")
+                    and v is not None else v) for k, v in asdict(params).items()},
+        mesh=str(getattr(mesh, "metadata", {}).get("name", "")),
+    )
+    return Groom(
+        rest_positions=torch.as_tensor(pts, dtype=torch.float32),
+        root_triangles=torch.as_tensor(root["triangles"]),
+        root_barycentrics=torch.as_tensor(root["barycentrics"], dtype=torch.float32),
+        root_face_vertices=torch.as_tensor(root["face_vertices"]),
+        root_rest_frames=triangle_frames(corners).float(),
+        metadata=meta,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# presets on the default head
+# --------------------------------------------------------------------------------------------
+def _smoothstep(t: np.ndarray) -> np.ndarray:
+    t = np.clip(t, 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def _parted_comb(strength: float, part_x: float = 0.0, back: float = 2.0):
+    """Comb for long hair: away from a parting at x = part_x, and backward at the front.
+
+    Returns ``f(roots (S, 3), normals (S, 3)) → (S, 3)`` (added to p_dir⁰): strength × (side, 0,
+    −back·front) where side = ±1 on either side of the parting (smoothed over 1 cm) and front
+    rises from 0 at z = −0.03 to 1 at z = 0.05 (the forehead).
+    """
+    def comb(roots, normals):
+        side = np.tanh((roots[:, 0] - part_x) / 0.01)
+        front = _smoothstep((roots[:, 2] + 0.03) / 0.08)
+        return strength * np.stack([side, np.zeros_like(side), -back * front], 1)
+    return comb
+
+
+def _bob_length(short: float, long: float, width: float = 0.03):
+    """Asymmetric bob: strands on the −x side (the face's right) ``short``, on +x ``long`` (m)."""
+    def length(roots, normals):
+        w = 0.5 * (1.0 + np.tanh(roots[:, 0] / width))
+        # the fringe over the forehead is cut shorter than the sides
+        front = _smoothstep((roots[:, 2] - 0.02) / 0.06)
+        return (short + (long - short) * w) * (1.0 - 0.45 * front)
+    return length
+
+
+_PRESET_PARAMS: Dict[str, Dict[str, Any]] = {
+    "straight": dict(region="scalp", particles=32, params=dict(
+        step=0.005, droop=0.3, noise=0.15, length=0.36, length_jitter=0.12, comb=_parted_comb(1.2, back=2.0))),
+    "wavy": dict(region="scalp", particles=48, params=dict(
+        step=0.005, droop=2.0, helix_radius=3000.0, helix_freq=0.5, noise=0.15, phase_jitter=math.pi,
+        helix_radius_jitter=0.2, length=0.32, length_jitter=0.12, comb=_parted_comb(1.2, back=2.0))),
+    "curly": dict(region="scalp", particles=64, params=dict(
+        step=0.006, droop=0.2, helix_radius=600.0, helix_freq=0.6, noise=0.2, phase_jitter=math.pi,
+        helix_radius_jitter=0.2, length=0.26, length_jitter=0.15)),
+    "bob": dict(region="scalp", particles=32, params=dict(
+        step=0.004, droop=0.3, noise=0.15, length=_bob_length(0.09, 0.21), length_jitter=0.05,
+        comb=_parted_comb(1.2, part_x=0.025, back=2.0))),
+    "fur": dict(region=None, particles=8, params=dict(
+        step=0.0015, droop=0.05, noise=0.5, length=0.015, length_jitter=0.3, root_min_cos=0.5, margin=0.001)),
+    "beard": dict(region="beard", particles=12, params=dict(
+        step=0.003, droop=0.08, helix_radius=60.0, helix_freq=0.8, noise=0.4, phase_jitter=math.pi,
+        length=0.04, length_jitter=0.3, root_min_cos=0.4, margin=0.001)),
+}
+
+#: Names accepted by :func:`preset`.
+PRESETS = tuple(sorted(list(_PRESET_PARAMS) + ["ponytail"]))
+
+
+def _ponytail(mesh, strands: int, particles: int, seed: int, sdf=None, *, tail_length: float = 0.24,
+              tie_radius: float = 0.008, spread: float = 0.035, margin: float = 0.002,
+              region="scalp") -> Groom:
+    """Ponytail: every strand runs over the scalp to a tie at the back of the head, then
+    follows a guide curve (the tail) with a per-strand offset that fans out toward the tip.
+
+    Scalp part: the path from the root to the tie is interpolated on great circles about the
+    cranium's centre and shrink-wrapped onto the head (SDF push-out to ``margin``). Tail: a
+    quadratic Bézier guide from the tie, backward then down, ``tail_length`` metres; strand
+    offsets in the plane normal to the guide grow from ``tie_radius`` to ``spread``.
+    The polyline of each strand is resampled to ``particles`` keeping its length.
+    """
+    mesh, verts, faces = _mesh_arrays(mesh)
+    rng = np.random.default_rng(seed)
+    root = sample_roots(mesh, region, strands=strands, rng=rng)
+    s = root["positions"].shape[0]
+    col = _Collider(sdf if sdf is not None else _sdf_for(mesh, 128))
+    centre = np.array([0.0, 0.025, -0.012])
+    # tie: the head's surface point furthest along (0, 0.45, −1) from the centre, plus its thickness
+    vn = np.asarray(mesh.vertex_normals)
+    aim = np.array([0.0, 0.45, -1.0]) / np.linalg.norm([0.0, 0.45, -1.0])
+    vi = int(np.argmax((verts - centre) @ aim))
+    tie = verts[vi] + vn[vi] * (tie_radius + margin)
+    # scalp part: great-circle interpolation about the centre, then shrink-wrap
+    m = 28
+    t = np.linspace(0.0, 1.0, m)
+    a = root["positions"] - centre
+    b = tie - centre
+    ra, rb = np.linalg.norm(a, axis=1), np.linalg.norm(b)
+    ua, ub = a / ra[:, None], b / rb
+    cos = np.clip(ua @ ub, -1.0, 1.0)
+    ang = np.arccos(cos)
+    sin = np.maximum(np.sin(ang), 1e-9)
+    wa = np.sin((1 - t)[None] * ang[:, None]) / sin[:, None]
+    wb = np.sin(t[None] * ang[:, None]) / sin[:, None]
+    small = ang < 1e-6
+    wa[small], wb[small] = (1 - t)[None], t[None]
+    u = wa[..., None] * ua[:, None] + wb[..., None] * ub[None, None]
+    u /= np.linalg.norm(u, axis=-1, keepdims=True)
+    r = ra[:, None] * (1 - t)[None] + rb * t[None]
+    # lift off the scalp along the way (hair volume), zero at the root
+    r = r + 0.006 * np.sin(0.5 * np.pi * t)[None]
+    scalp = centre + r[..., None] * u
+    body = scalp[:, 1:].reshape(-1, 3)
+    for _ in range(3):
+        body, _, _ = col.push_out(body, margin)
+    scalp[:, 1:] = body.reshape(s, m - 1, 3)
+    # tail: guide curve and per-strand offsets
+    k = 40
+    v = np.linspace(0.0, 1.0, k)
+    p0, p1, p2 = tie, tie + np.array([0.0, 0.02, -0.08]), tie + np.array([0.0, -tail_length * 0.85, -0.12])
+    guide = ((1 - v) ** 2)[:, None] * p0 + (2 * (1 - v) * v)[:, None] * p1 + (v ** 2)[:, None] * p2
+    glen = np.linalg.norm(np.diff(guide, axis=0), axis=1).sum()
+    guide = p0 + (guide - p0) * (tail_length / glen)  # scale to the tail length
+    tang = np.gradient(guide, axis=0)
+    tang /= np.linalg.norm(tang, axis=1, keepdims=True)
+    e1 = np.cross(tang, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(tang, e1)
+    theta = rng.uniform(0.0, 2 * np.pi, s)
+    rad = np.sqrt(rng.random(s))
+    wave_phase = rng.uniform(0.0, 2 * np.pi, s)
+    rho = (tie_radius + (spread - tie_radius) * v[None] ** 0.8) * rad[:, None]  # (S, k)
+    ct, st = np.cos(theta)[:, None, None], np.sin(theta)[:, None, None]
+    off = rho[..., None] * (ct * e1[None] + st * e2[None])
+    wave = 0.004 * v[None] * np.sin(2 * np.pi * 3 * v[None] + wave_phase[:, None])
+    tail = guide[None] + off + wave[..., None] * e1[None]
+    poly = np.concatenate([scalp, tail], axis=1)
+    pts = resample_strands(poly, particles, keep_length=True)
+    body, _, _ = col.push_out(pts[:, 1:].reshape(-1, 3), 0.5 * margin)
+    pts[:, 1:] = body.reshape(s, particles - 1, 3)
+    corners = torch.as_tensor(verts[root["face_vertices"]])
+    meta = dict(generator="ams_torch.preset", preset="ponytail", seed=int(seed), region=region, strands=int(s),
+                particles=int(particles), guide=guide.tolist(), tie=tie.tolist(), tail_length=tail_length,
+                tie_radius=tie_radius, spread=spread, margin=margin,
+                mesh=str(getattr(mesh, "metadata", {}).get("name", "")))
+    return Groom(torch.as_tensor(pts, dtype=torch.float32), torch.as_tensor(root["triangles"]),
+                 torch.as_tensor(root["barycentrics"], dtype=torch.float32), torch.as_tensor(root["face_vertices"]),
+                 triangle_frames(corners).float(), None, meta)
+
+
+def preset(name: str, strands: int = 5000, particles: Optional[int] = None, seed: int = 0, *, mesh=None,
+           sdf=None, **overrides) -> Groom:
+    """A named groom on the default head (or on ``mesh``, which must carry the same regions).
+
+    Names (see ``PRESETS``):
+
+    * ``straight``: long (0.36 m) straight hair parted in the middle, hanging to the shoulders.
+    * ``wavy``: long (0.32 m) wavy hair (p_h = 3000, p_freq = 0.5, p_γ = 2).
+    * ``curly``: 0.26 m curls (p_h = 600, p_freq = 0.6), voluminous.
+    * ``bob``: asymmetric bob, 0.21 m on the +x side, 0.09 m on the −x side, shorter fringe.
+    * ``ponytail``: strands pulled over the scalp to a tie at the back and gathered along a
+      guide curve (a 0.24 m tail that fans out).
+    * ``fur``: short (1.5 cm) fur over the whole head.
+    * ``beard``: 4 cm slightly curly beard on the ``beard`` region.
+
+    Args:
+        strands: S (100 … 100,000 are all fine; area-weighted roots).
+        particles: N per strand; default per preset (straight/bob 32, wavy 48, curly 64,
+            ponytail 48, fur 8, beard 12). Curls need ≳ 6 particles per turn.
+        seed: random seed (same seed → same groom, bit for bit).
+        mesh: head mesh in metres (+y up, face toward +z) with ``metadata["regions"]``;
+            default ``ams_torch.head.default_head()``.
+        sdf: collision ``SDFGrid`` of ``mesh`` to reuse.
+        **overrides: growth parameters replacing the preset's (not for ``ponytail``, which
+            takes ``tail_length``, ``tie_radius``, ``spread``, ``margin``).
+
+    Returns:
+        :class:`Groom` with ``rest_positions`` (S, N, 3) float32 metres in the head frame;
+        ``metadata["preset"]`` is the name.
+    """
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
+    if mesh is None:
+        from .head import default_head
+        mesh = default_head()
+    if name == "ponytail":
+        n = 48 if particles is None else int(particles)
+        return _ponytail(mesh, int(strands), n, seed, sdf=sdf, **overrides)
+    spec = _PRESET_PARAMS[name]
+    params = dict(spec["params"])
+    region = overrides.pop("region", spec["region"])
+    for key, value in overrides.items():
+        params[ALIASES.get(key, key)] = value
+    n = spec["particles"] if particles is None else int(particles)
+    groom = grow(mesh, region=region, strands=int(strands), particles=n, seed=seed, sdf=sdf, **params)
+    groom.metadata["generator"] = "ams_torch.preset"
+    groom.metadata["preset"] = name
+    return groom
