@@ -107,9 +107,9 @@ class Pose:
         if not self.has_velocity:
             return torch.zeros_like(x)
         _, t = self._bcast(x)
-        v, w = self.linear_velocity, self.angular_velocity
-        while v.dim() < t.dim():
-            v, w = v.unsqueeze(0), w.unsqueeze(0)
+        v, w = self.linear_velocity.to(x.dtype), self.angular_velocity.to(x.dtype)
+        while v.dim() < t.dim():  # same singleton dims as _bcast gives t
+            v, w = v.unsqueeze(-2), w.unsqueeze(-2)
         return v[..., None, :] + torch.cross(w[..., None, :].expand_as(x), x - t[..., None, :], dim=-1)
 
     def _bcast(self, p: torch.Tensor):

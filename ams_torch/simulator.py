@@ -7,6 +7,7 @@ import torch
 
 from . import integrator
 from .model import State, build_model
+from .hair_hair import HairHair, build_hair_hair, make_stage
 from .params import Params
 from .pose import Pose
 
@@ -21,6 +22,8 @@ class Simulator(torch.nn.Module):
         params: :class:`Params` (SI units); defaults to ``Params()``.
         device, dtype: where and in what precision to simulate (float32 by default).
         pose: the head pose at t = 0 (default: identity, at rest).
+        hair_hair: :class:`HairHair` settings to enable hair–hair interaction (SPEC §6);
+            ``None`` (default) allocates no grid and runs no grid code.
 
     Usage::
 
@@ -31,7 +34,8 @@ class Simulator(torch.nn.Module):
     """
 
     def __init__(self, rest_positions, params: Optional[Params] = None, *, device=None,
-                 dtype: torch.dtype = torch.float32, pose: Optional[Pose] = None):
+                 dtype: torch.dtype = torch.float32, pose: Optional[Pose] = None,
+                 hair_hair: Optional[HairHair] = None):
         super().__init__()
         self.params = params if params is not None else Params()
         self.device = torch.device(device) if device is not None else torch.device("cpu")
@@ -39,7 +43,13 @@ class Simulator(torch.nn.Module):
         self.initial_pose = (pose or Pose.identity()).to(device=self.device, dtype=dtype)
         self.model = build_model(rest_positions, self.params, device=self.device, dtype=dtype,
                                  initial_pose=self.initial_pose)
-        self.stages: list = []
+        self.stages: list = []  # run after inextensibility, in SPEC §4 order
+        m = self.model
+        self.hair_hair = hair_hair
+        self.hair_hair_grid = build_hair_hair(hair_hair, m.rest_positions, m.particle_mass,
+                                              device=self.device, dtype=dtype)
+        if self.hair_hair_grid is not None:
+            self.stages.append(make_stage(self.hair_hair_grid, m.particle_mass, ~m.pinned))
 
     # -- state ---------------------------------------------------------------------------
     def initial_state(self, pose: Optional[Pose] = None) -> State:

@@ -1,0 +1,291 @@
+"""The AMS strand core (SPEC §1–5): rest, energy, extremes, batching, precision, validation."""
+import math
+
+import pytest
+import torch
+
+import ams_torch as at
+from ams_torch.constraints import max_stretch
+from ams_torch.pose import axis_angle_to_matrix
+from ams_torch.testing import curly_strand, shake_poses, sphere_groom, wisp
+
+F64 = torch.float64
+
+
+def run(sim, state, frames, poses=None):
+    for k in range(frames):
+        state = sim.step(state, None if poses is None else poses[k])
+    return state
+
+
+# ----------------------------------------------------------------------------- sag-free (§5)
+def test_sag_free_single_strand_stays_where_grown(capsys):
+    rest = curly_strand(particles=30, radius=0.02, pitch=0.03)
+    drift = {}
+    for sag_free in (True, False):
+        sim = at.Simulator(rest, at.Params(sag_free=sag_free), dtype=F64)
+        s = run(sim, sim.initial_state(), 120)  # 2 s at 60 fps
+        drift[sag_free] = float((s.x - sim.model.rest_positions).norm(dim=-1).max())
+    with capsys.disabled():
+        print(f"\n[sag-free] 30-particle strand, 2 s: max drift {drift[True] * 1e3:.3g} mm with, "
+              f"{drift[False] * 1e3:.3g} mm without")
+    assert drift[True] <= 1e-4
+    assert drift[False] > 10 * max(drift[True], 1e-4)
+
+
+def test_sag_free_groom_stays_where_grown(capsys):
+    rest = sphere_groom(1000, 16, seed=1)
+    drift = {}
+    for sag_free in (True, False):
+        sim = at.Simulator(rest, at.Params(sag_free=sag_free))
+        s = run(sim, sim.initial_state(), 120)
+        drift[sag_free] = float((s.x - sim.model.rest_positions).norm(dim=-1).max())
+    with capsys.disabled():
+        print(f"\n[sag-free] 1000-strand groom, 2 s (float32): max drift {drift[True] * 1e3:.3g} mm with, "
+              f"{drift[False] * 1e3:.3g} mm without")
+    assert drift[True] <= 1e-4
+    assert drift[False] > 1e-3
+
+
+def test_ghosts_sit_above_particles_by_weight_over_stiffness():
+    rest = curly_strand(particles=8)
+    p = at.Params()
+    sim = at.Simulator(rest, p, dtype=F64)
+    s = sim.initial_state()
+    offset = s.ghosts() - s.x
+    expected = p.particle_mass * 9.81 / p.integrity_stiffness
+    torch.testing.assert_close(offset[..., 1], torch.full_like(offset[..., 1], expected))
+    torch.testing.assert_close(offset[..., [0, 2]], torch.zeros_like(offset[..., [0, 2]]))
+
+
+def test_sag_free_without_integrity_warns_and_applies_no_offset():
+    rest = curly_strand(particles=8)
+    with pytest.warns(UserWarning, match="sag-free"):
+        sim = at.Simulator(rest, at.Params(integrity_stiffness=0.0, sag_free=True), dtype=F64)
+    s = sim.initial_state()
+    assert torch.equal(s.ghost_rest, sim.model.rest_positions)
+
+
+# ------------------------------------------------------------------------- head and ghosts (§1)
+def test_roots_follow_the_head_and_get_its_velocity():
+    rest = sphere_groom(20, 12, seed=2, dtype=F64)
+    p = at.Params(dt=1 / 60)
+    sim = at.Simulator(rest, p, dtype=F64)
+    poses = shake_poses(30, p.dt, amplitude=0.8, frequency=2.0, translation_amplitude=(0.05, 0.02, 0.0), dtype=F64)
+    s = sim.initial_state()
+    for pose in poses:
+        s = sim.step(s, pose)
+        target = pose.to_world(sim.model.rest_positions[:, :2])
+        torch.testing.assert_close(s.x[:, :2], target, rtol=0, atol=1e-12)
+        torch.testing.assert_close(s.v[:, :2], pose.velocity_at(target), rtol=0, atol=1e-12)
+    # ghosts move rigidly with the head: their shape in the head frame never changes
+    torch.testing.assert_close(s.pose.to_local(s.ghosts()), s.ghost_rest, rtol=0, atol=1e-12)
+
+
+def test_pose_without_velocity_gets_velocity_from_motion():
+    rest = curly_strand(particles=6)
+    sim = at.Simulator(rest, at.Params(dt=0.01), dtype=F64)
+    s = sim.initial_state()
+    pose = at.Pose.from_rotvec([0.0, 0.1, 0.0], [0.02, 0.0, 0.0], dtype=F64)
+    s = sim.step(s, pose)
+    torch.testing.assert_close(s.pose.linear_velocity, torch.tensor([2.0, 0.0, 0.0], dtype=F64))
+    torch.testing.assert_close(s.pose.angular_velocity, torch.tensor([0.0, 10.0, 0.0], dtype=F64))
+
+
+# ---------------------------------------------------------------------------------- energy
+def total_energy(sim, s):
+    """Kinetic + spring + integrity + angular (couple) potential energy, J."""
+    m, p = sim.model, sim.params
+    e = 0.5 * (m.particle_mass * (s.v * s.v).sum(-1)).sum()
+    for k, scale in ((1, 1.0), (2, p.bend_scale), (3, p.torsion_scale)):
+        length = (s.x[:, k:] - s.x[:, :-k]).norm(dim=-1)
+        e = e + 0.5 * p.stretch_stiffness * scale * ((length - m.rest_lengths[k - 1]) ** 2).sum()
+    y = s.ghosts()
+    e = e + 0.5 * p.integrity_stiffness * ((y - s.x) ** 2).sum()
+    ed = s.x[:, 1:] - s.x[:, :-1]
+    g = y[:, 1:] - y[:, :-1]
+    cos = (ed * g).sum(-1) / (ed.norm(dim=-1) * g.norm(dim=-1))
+    theta = torch.acos(cos.clamp(-1, 1))
+    e = e + 0.5 * p.angular_stiffness * (ed.norm(dim=-1) * theta ** 2).sum()
+    return float(e)
+
+
+def test_energy_does_not_grow_without_gravity_and_drag():
+    rest = sphere_groom(24, 16, seed=3, dtype=F64)
+    p = at.Params(gravity=(0.0, 0.0, 0.0), drag=0.0)
+    sim = at.Simulator(rest, p, dtype=F64)
+    s = sim.initial_state()
+    g = torch.Generator().manual_seed(0)
+    v = 0.3 * torch.randn(s.v.shape, generator=g, dtype=F64)
+    v[:, :2] = 0
+    s = s.replace(v=v)
+    energies = [total_energy(sim, s)]
+    for _ in range(1000):
+        s = sim.step(s)
+        energies.append(total_energy(sim, s))
+    e = torch.tensor(energies)
+    assert e[0] > 0
+    growth = (e[1:] - e[:-1]).max() / e[0]
+    assert growth <= 1e-9, f"energy grew by {growth:.3g} of E0 in one step"
+    assert e[-1] < e[0]
+
+
+# -------------------------------------------------------------------------------- extremes
+@pytest.mark.parametrize("stiffness_ratio", [1e2, 1e4, 1e6, 1e8])
+@pytest.mark.parametrize("dt", [1 / 1000, 1 / 60, 1 / 24])
+def test_extremes_stay_finite_and_inextensible(stiffness_ratio, dt):
+    """κ_L/m from 1e2 to 1e8 s⁻² (κ_L = 1e-4 … 1e2 N/m at the default 1e-6 kg), M = 1, under a
+    translational shake whose peak head acceleration is 0, 10 g and 50 g."""
+    rest = sphere_groom(12, 16, seed=4)
+    p = at.Params(stretch_stiffness=stiffness_ratio * 1e-6, dt=dt, substeps=1)
+    sim = at.Simulator(rest, p)
+    edge = sim.model.edge_rest_length
+    frames = max(6, int(round(0.25 / dt)))
+    freq = 2.0
+    for accel_g in (0.0, 10.0, 50.0):
+        amp = accel_g * 9.81 / (2 * math.pi * freq) ** 2
+        poses = shake_poses(frames, dt, amplitude=0.0, frequency=freq, translation_amplitude=(amp, 0.3 * amp, 0.0))
+        s = sim.initial_state()
+        worst = 0.0
+        for pose in poses:
+            s = sim.step(s, pose)  # raises SimulationDiverged on NaN/explosion
+            worst = max(worst, float(max_stretch(s.x, edge).max()))
+        assert torch.isfinite(s.x).all()
+        assert worst <= 0.01, f"stretch {worst:.3%} at κ_L/m={stiffness_ratio:g}, dt={dt:.4g}, {accel_g:g} g"
+
+
+# -------------------------------------------------------------------------------- batching
+def test_batched_equals_one_strand_at_a_time():
+    rest = sphere_groom(5, 12, seed=5, dtype=F64)
+    p = at.Params(substeps=2)
+    poses = shake_poses(20, p.dt, amplitude=0.6, frequency=2.0, dtype=F64)
+    sim = at.Simulator(rest, p, dtype=F64)
+    together = run(sim, sim.initial_state(), 20, poses).x
+    for i in range(rest.shape[0]):
+        one = at.Simulator(rest[i:i + 1], p, dtype=F64)
+        alone = run(one, one.initial_state(), 20, poses).x
+        assert (alone[0] - together[i]).abs().max() <= 1e-12
+
+
+def test_scene_batch_equals_separate_runs():
+    rest = sphere_groom(6, 10, seed=6, dtype=F64)
+    p = at.Params()
+    sim = at.Simulator(rest, p, dtype=F64)
+    a = shake_poses(15, p.dt, amplitude=0.5, frequency=2.0, dtype=F64)
+    b = shake_poses(15, p.dt, amplitude=0.3, frequency=1.0, axis=(1.0, 0.0, 0.0), dtype=F64)
+    stack = lambda pa, pb: at.Pose(*(torch.stack((getattr(pa, f), getattr(pb, f))) for f in  # noqa: E731
+                                     ("rotation", "translation", "linear_velocity", "angular_velocity")))
+    s = sim.initial_state(stack(at.Pose.identity(dtype=F64), at.Pose.identity(dtype=F64)))
+    for pa, pb in zip(a, b):
+        s = sim.step(s, stack(pa, pb))
+    xa = run(sim, sim.initial_state(), 15, a).x
+    xb = run(sim, sim.initial_state(), 15, b).x
+    assert s.x.shape == (2,) + tuple(rest.shape)
+    assert (s.x[0] - xa).abs().max() <= 1e-12 and (s.x[1] - xb).abs().max() <= 1e-12
+
+
+def test_float32_tracks_float64_on_demo_motion():
+    rest = sphere_groom(200, 32, seed=7, dtype=F64)
+    p = at.Params()
+    out = {}
+    for dtype in (torch.float32, F64):
+        sim = at.Simulator(rest, p, dtype=dtype)
+        poses = shake_poses(60, p.dt, dtype=dtype)
+        out[dtype] = run(sim, sim.initial_state(), 60, poses).x.double()
+    err = (out[torch.float32] - out[F64]).norm(dim=-1).max()
+    assert err <= 1e-4, f"float32 vs float64 after 60 frames: {err * 1e3:.3g} mm"
+
+
+def test_gradient_flows_to_stiffness_and_initial_state():
+    rest = curly_strand(particles=8)
+    kappa = torch.tensor(1e-4, dtype=F64, requires_grad=True)
+    p = at.Params(integrity_stiffness=kappa, sag_free=False)
+    sim = at.Simulator(rest, p, dtype=F64)
+    s0 = sim.initial_state()
+    v0 = torch.zeros_like(s0.v, requires_grad=True)
+    s = s0.replace(v=v0)
+    for _ in range(3):
+        s = sim.step(s)
+    loss = s.x[..., 1].sum()
+    loss.backward()
+    assert kappa.grad is not None and torch.isfinite(kappa.grad) and kappa.grad != 0
+    assert torch.isfinite(v0.grad).all() and v0.grad.abs().sum() > 0
+
+
+# ------------------------------------------------------------------------------ validation
+@pytest.mark.parametrize("bad,match", [
+    (torch.zeros(3, 10), r"shape \(S, N, 3\)"),
+    (torch.zeros(2, 10, 2), r"shape \(S, N, 3\)"),
+    (curly_strand(particles=3), "at least 4"),
+])
+def test_bad_rest_shapes(bad, match):
+    with pytest.raises(ValueError, match=match):
+        at.Simulator(bad, at.Params())
+
+
+def test_nan_rest_positions_named():
+    rest = sphere_groom(4, 8)
+    rest[2, 5, 1] = float("nan")
+    with pytest.raises(ValueError, match=r"NaN/Inf: first at strand 2, particle 5"):
+        at.Simulator(rest, at.Params())
+    rest[2, 5, 1] = float("inf")
+    with pytest.raises(ValueError, match="NaN/Inf"):
+        at.Simulator(rest, at.Params())
+
+
+def test_degenerate_segment_named():
+    rest = sphere_groom(4, 8)
+    rest[1, 4] = rest[1, 3]
+    with pytest.raises(ValueError, match=r"zero-length .*strand 1, between particles 3 and 4"):
+        at.Simulator(rest, at.Params())
+
+
+@pytest.mark.parametrize("field,value,match", [
+    ("particle_mass", 0.0, "particle_mass must be positive"),
+    ("particle_mass", -1e-6, "particle_mass must be positive"),
+    ("dt", 0.0, "dt must be a positive"),
+    ("dt", -0.01, "dt must be a positive"),
+    ("substeps", 0, "substeps must be a positive integer"),
+    ("substeps", 1.5, "substeps must be a positive integer"),
+    ("stretch_stiffness", -1.0, "stretch_stiffness must be non-negative"),
+    ("integrity_stiffness", -1.0, "integrity_stiffness must be non-negative"),
+    ("angular_stiffness", float("nan"), "angular_stiffness must be finite"),
+    ("num_pinned", -1, "num_pinned"),
+])
+def test_bad_params_named(field, value, match):
+    with pytest.raises(ValueError, match=match):
+        at.Params(**{field: value})
+    with pytest.raises(ValueError, match=match):
+        at.Params().replace(**{field: value})
+
+
+def test_too_many_pinned_and_bad_state_shape():
+    rest = sphere_groom(3, 6)
+    with pytest.raises(ValueError, match="num_pinned"):
+        at.Simulator(rest, at.Params(num_pinned=6))
+    sim = at.Simulator(rest, at.Params())
+    s = sim.initial_state()
+    with pytest.raises(ValueError, match="state.x/v must have shape"):
+        sim.step(s.replace(x=s.x[:, :5], v=s.v[:, :5]))
+
+
+def test_divergence_guard_names_frame_and_strands():
+    rest = sphere_groom(6, 8)
+    sim = at.Simulator(rest, at.Params())
+    s = sim.step(sim.initial_state())
+    v = s.v.clone()
+    v[3, 4] = float("nan")
+    with pytest.raises(at.SimulationDiverged, match=r"frame 2.*\[3\]") as info:
+        sim.step(s.replace(v=v))
+    assert info.value.frame == 2 and info.value.strands[0] == [3]
+    v = s.v.clone()
+    v[1, 5, 0] = 1e7
+    with pytest.raises(at.SimulationDiverged, match="max_relative_speed"):
+        sim.step(s.replace(v=v))
+
+
+def test_ms_params_are_plain_mass_spring():
+    p = at.Params().ms()
+    assert p.integrity_stiffness == 0 and p.angular_stiffness == 0 and not p.sag_free
+    with pytest.raises(ValueError, match="unknown Params field"):
+        at.Params().replace(stiffness=1.0)
