@@ -6,8 +6,10 @@ The public API is small:
 - :class:`Simulator`: ``Simulator(rest_positions, params).initial_state()`` / ``.step(state, pose)``.
 - :class:`Pose`: a rigid head pose with its velocities.
 - :func:`solve_banded`: the batched banded block-Cholesky strand solve.
+- :class:`HairHair`: hair–hair interaction settings (``Simulator(..., hair_hair=HairHair())``).
 - :class:`State`, :class:`SimulationDiverged`.
 """
+from .hair_hair import HairHair
 from .integrator import SimulationDiverged
 from .model import State
 from .ops import solve_banded
@@ -17,4 +19,4 @@ from .simulator import Simulator
 
 __version__ = "0.1.0"
 
-__all__ = ["Params", "Simulator", "Pose", "State", "solve_banded", "SimulationDiverged", "__version__"]
+__all__ = ["Params", "Simulator", "Pose", "State", "solve_banded", "SimulationDiverged", "HairHair", "__version__"]
