@@ -361,16 +361,7 @@ def step_with(sim, state, pose, collider_poses=None):
     return sim.step(state, pose)
 
 
-@pytest.fixture
-def one_thread():
-    # two threads fighting other jobs for two shared cores ran these loops ~4x slower
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
-
-
-def test_swept_sphere_pushes_hair_aside(one_thread):
+def test_swept_sphere_pushes_hair_aside():
     from ams_torch.params import Params
     from ams_torch.testing import sphere_groom
 
@@ -399,7 +390,7 @@ def test_swept_sphere_pushes_hair_aside(one_thread):
     assert torch.isfinite(state.x).all()
 
 
-def test_spinning_head_leaves_no_particle_inside(head_collider, one_thread):
+def test_spinning_head_leaves_no_particle_inside(head_collider):
     from ams_torch.head import hanging_groom
     from ams_torch.params import Params
 
