@@ -7,16 +7,22 @@ The public API is small:
 - :class:`Pose`: a rigid head pose with its velocities.
 - :func:`solve_banded`: the batched banded block-Cholesky strand solve.
 - :class:`HairHair`: hair–hair interaction settings (``Simulator(..., hair_hair=HairHair())``).
+- :func:`default_head`, :class:`SDFGrid` and the colliders (``Simulator(..., colliders=[...])``).
 - :class:`State`, :class:`SimulationDiverged`.
 """
+from .colliders import CapsuleCollider, HollowSphereCollider, MeshCollider, PlaneCollider, SphereCollider
 from .hair_hair import HairHair
+from .head import default_head, load_mesh
 from .integrator import SimulationDiverged
 from .model import State
 from .ops import solve_banded
 from .params import Params
 from .pose import Pose
+from .sdf import SDFGrid
 from .simulator import Simulator
 
 __version__ = "0.1.0"
 
-__all__ = ["Params", "Simulator", "Pose", "State", "solve_banded", "SimulationDiverged", "HairHair", "__version__"]
+__all__ = ["Params", "Simulator", "Pose", "State", "solve_banded", "SimulationDiverged", "HairHair",
+           "default_head", "load_mesh", "SDFGrid", "SphereCollider", "MeshCollider", "CapsuleCollider",
+           "PlaneCollider", "HollowSphereCollider", "__version__"]

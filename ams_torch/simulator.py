@@ -7,6 +7,7 @@ import torch
 
 from . import integrator
 from .model import State, build_model
+from .colliders import Collider, CollisionStage
 from .hair_hair import HairHair, build_hair_hair, make_stage
 from .params import Params
 from .pose import Pose
@@ -24,6 +25,8 @@ class Simulator(torch.nn.Module):
         pose: the head pose at t = 0 (default: identity, at rest).
         hair_hair: :class:`HairHair` settings to enable hair–hair interaction (SPEC §6);
             ``None`` (default) allocates no grid and runs no grid code.
+        colliders: colliders for the hair–solid stage (SPEC §8), e.g. ``MeshCollider``,
+            ``SphereCollider``; an empty list or None builds no SDF and runs no collision code.
 
     Usage::
 
@@ -35,7 +38,7 @@ class Simulator(torch.nn.Module):
 
     def __init__(self, rest_positions, params: Optional[Params] = None, *, device=None,
                  dtype: torch.dtype = torch.float32, pose: Optional[Pose] = None,
-                 hair_hair: Optional[HairHair] = None):
+                 hair_hair: Optional[HairHair] = None, colliders: Optional[Sequence[Collider]] = None):
         super().__init__()
         self.params = params if params is not None else Params()
         self.device = torch.device(device) if device is not None else torch.device("cpu")
@@ -50,6 +53,10 @@ class Simulator(torch.nn.Module):
                                               device=self.device, dtype=dtype)
         if self.hair_hair_grid is not None:
             self.stages.append(make_stage(self.hair_hair_grid, m.particle_mass, ~m.pinned))
+        self.colliders = list(colliders or [])
+        self.collision_stage = CollisionStage(self.colliders, free=~m.pinned) if self.colliders else None
+        if self.collision_stage is not None:
+            self.stages.append(self.collision_stage)
 
     # -- state ---------------------------------------------------------------------------
     def initial_state(self, pose: Optional[Pose] = None) -> State:
@@ -75,18 +82,26 @@ class Simulator(torch.nn.Module):
         return State(x=x, v=v, ghost_rest=ghost_rest.clone(), pose=pose)
 
     # -- dynamics -----------------------------------------------------------------------
-    def step(self, state: State, pose: Optional[Pose] = None, external_force=None) -> State:
+    def step(self, state: State, pose: Optional[Pose] = None, external_force=None,
+             collider_poses=None) -> State:
         """Advance one frame of ``params.dt`` seconds.
 
         Args:
             state: current state.
             pose: head pose at the end of the frame (None: the head stays still).
             external_force: (..., S, N, 3) newtons, or ``f(x, v, t) -> force``.
+            collider_poses: new world poses for the colliders from this frame on (a list aligned
+                with ``colliders``, None entries keep a collider's pose; see
+                ``colliders.resolve_world_poses``).
         Returns:
             the new :class:`State` (``.x``, ``.v``: (..., S, N, 3)).
         Raises:
             SimulationDiverged: the state became non-finite or exploded (names frame and strands).
         """
+        if collider_poses is not None:
+            if self.collision_stage is None:
+                raise ValueError("collider_poses given but the simulator has no colliders")
+            self.collision_stage.collider_poses = collider_poses
         return integrator.step(self.model, self.params, state, pose, external_force, self.stages)
 
     forward = step
