@@ -226,23 +226,32 @@ def sample_roots(mesh, region="scalp", strands: Optional[int] = None, per_triang
 # the growth recurrence
 # --------------------------------------------------------------------------------------------
 class _Collider:
-    """Signed distance + outward normal of the mesh in float64 numpy (wraps an SDFGrid)."""
+    """Signed distance + outward normal of the mesh for float64 numpy points (wraps an SDFGrid).
+
+    Queries run in the grid's own dtype (float32 for ``SDFGrid.from_mesh``) on the CPU.
+    """
 
     def __init__(self, sdf):
-        self.sdf = sdf.to(dtype=torch.float64) if hasattr(sdf, "to") else sdf
+        self.sdf = sdf
+        self.dtype = getattr(sdf, "dtype", torch.float32)
 
-    def query(self, x: np.ndarray):
-        sigma, normal = self.sdf.distance_and_normal(torch.from_numpy(x))
-        return sigma.numpy(), normal.numpy()
+    def distance(self, x: np.ndarray) -> np.ndarray:
+        return self.sdf.distance(torch.from_numpy(x).to(self.dtype)).double().numpy()
+
+    def distance_and_normal(self, x: np.ndarray):
+        sigma, normal = self.sdf.distance_and_normal(torch.from_numpy(x).to(self.dtype))
+        return sigma.double().numpy(), normal.double().numpy()
 
     def push_out(self, x: np.ndarray, margin: float):
-        """Move points with σ < margin out along the normal to σ ≈ margin; returns (x, moved, normal)."""
-        sigma, normal = self.query(x)
-        moved = sigma < margin
-        if moved.any():
-            x = x.copy()
-            x[moved] += (margin - sigma[moved])[:, None] * normal[moved]
-        return x, moved, normal
+        """Move points (M, 3) with σ < margin out along the normal to σ ≈ margin → (x, moved (M,) bool)."""
+        x = np.array(x, dtype=np.float64)
+        idx = np.flatnonzero(self.distance(x) < margin)
+        if idx.size:
+            sigma, normal = self.distance_and_normal(x[idx])
+            x[idx] += np.maximum(margin - sigma, 0.0)[:, None] * normal
+        moved = np.zeros(len(x), dtype=bool)
+        moved[idx] = True
+        return x, moved
 
 
 def _normalize(a: np.ndarray) -> np.ndarray:
@@ -292,24 +301,41 @@ def grow_from_roots(roots, directions, steps: int, params: Optional[GrowthParams
         step_dir = _normalize(d)
         xn = x + tau * step_dir
         if col is not None:
-            hit_any = np.zeros(s, dtype=bool)
-            normal = None
-            for _ in range(4):  # push out, restore the step length, repeat
-                xn, moved, normal_it = col.push_out(xn, p.margin)
-                if not moved.any():
-                    break
-                hit_any |= moved
-                normal = normal_it if normal is None else np.where(moved[:, None], normal_it, normal)
-                xn = x + tau * _normalize(xn - x)
-            if hit_any.any():
-                # a point still inside after restoring the length: accept a slightly longer step
-                xn, _, _ = col.push_out(xn, 0.5 * p.margin)
-                # slide: drop the inward component of p_dir where the strand touched the surface
-                inward = np.minimum((d * normal).sum(1), 0.0)
-                d = np.where(hit_any[:, None], d - inward[:, None] * normal, d)
+            _collide_step(col, x, xn, d, tau, p.margin)
         out[:, i] = xn
         x = xn
     return out
+
+
+def _collide_step(col: _Collider, x: np.ndarray, xn: np.ndarray, d: np.ndarray, tau: float, margin: float):
+    """Keep the new points ``xn`` (S, 3) at σ ≥ margin, in place; update ``d`` (S, 3) in place.
+
+    Points below the margin are pushed out along the SDF normal and put back at distance
+    ``tau`` from their predecessor ``x``, up to four times; a point still below margin/2
+    after that is pushed out without restoring the step. Where a strand touched the
+    surface, the inward normal component of p_dir is removed (the strand slides).
+    """
+    active = np.flatnonzero(col.distance(xn) < margin)
+    if not active.size:
+        return
+    hit = active
+    normals = np.zeros((len(hit), 3))
+    where = np.arange(len(hit))  # position of each active point in ``hit``
+    for _ in range(4):
+        sigma, normal = col.distance_and_normal(xn[active])
+        below = sigma < margin
+        active, where, sigma, normal = active[below], where[below], sigma[below], normal[below]
+        if not active.size:
+            break
+        normals[where] = normal
+        pushed = xn[active] + (margin - sigma)[:, None] * normal
+        xn[active] = x[active] + tau * _normalize(pushed - x[active])
+    if active.size:  # a point the step-preserving projection could not free
+        sigma, normal = col.distance_and_normal(xn[active])
+        low = sigma < 0.5 * margin
+        xn[active[low]] += (0.5 * margin - sigma[low])[:, None] * normal[low]
+    inward = np.minimum((d[hit] * normals).sum(1), 0.0)
+    d[hit] -= inward[:, None] * normals
 
 
 def _initial_directions(normals: np.ndarray, noise: np.ndarray, min_cos: float) -> np.ndarray:
@@ -326,6 +352,16 @@ def _initial_directions(normals: np.ndarray, noise: np.ndarray, min_cos: float) 
 def _sdf_for(mesh, resolution: int):
     from .sdf import SDFGrid
     return SDFGrid.from_mesh(mesh, resolution=int(resolution))
+
+
+def _describe(value):
+    """A growth parameter as it is kept in metadata (callables and arrays summarised)."""
+    if callable(value):
+        return f"callable {getattr(value, '__qualname__', type(value).__name__)}"
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    arr = np.asarray(value)
+    return arr.item() if arr.ndim == 0 else (arr.tolist() if arr.size <= 3 else f"array {arr.shape}")
 
 
 def _resolve_lengths(length, roots: np.ndarray, normals: np.ndarray) -> Optional[np.ndarray]:
@@ -404,7 +440,7 @@ def grow(mesh, region="scalp", strands: Optional[int] = None, particles: int = 3
     if lengths is not None or k_steps + 1 != particles:
         pts = resample_strands(pts, particles, keep_length=True, lengths=lengths)
         if collider is not None:  # resampling moves points by ~chord error: keep them out
-            body, _, _ = collider.push_out(pts[:, 1:].reshape(-1, 3), 0.5 * params.margin)
+            body, _ = collider.push_out(pts[:, 1:].reshape(-1, 3), 0.5 * params.margin)
             pts[:, 1:] = body.reshape(s, particles - 1, 3)
     corners = torch.as_tensor(verts[root["face_vertices"]])
     meta = dict(
@@ -415,8 +451,7 @@ def grow(mesh, region="scalp", strands: Optional[int] = None, particles: int = 3
         particles=particles,
         per_triangle=None if per_triangle is None else int(per_triangle),
         growth_steps=k_steps,
-        params={k: (("callable" if callable(v) else np.asarray(v, dtype=np.float64).tolist()) if k in ("length", "comb")
-                    and v is not None else v) for k, v in asdict(params).items()},
+        params={k: _describe(v) for k, v in asdict(params).items()},
         mesh=str(getattr(mesh, "metadata", {}).get("name", "")),
     )
     return Groom(
@@ -529,7 +564,7 @@ def _ponytail(mesh, strands: int, particles: int, seed: int, sdf=None, *, tail_l
     scalp = centre + r[..., None] * u
     body = scalp[:, 1:].reshape(-1, 3)
     for _ in range(3):
-        body, _, _ = col.push_out(body, margin)
+        body, _ = col.push_out(body, margin)
     scalp[:, 1:] = body.reshape(s, m - 1, 3)
     # tail: guide curve and per-strand offsets
     k = 40
@@ -553,7 +588,7 @@ def _ponytail(mesh, strands: int, particles: int, seed: int, sdf=None, *, tail_l
     tail = guide[None] + off + wave[..., None] * e1[None]
     poly = np.concatenate([scalp, tail], axis=1)
     pts = resample_strands(poly, particles, keep_length=True)
-    body, _, _ = col.push_out(pts[:, 1:].reshape(-1, 3), 0.5 * margin)
+    body, _ = col.push_out(pts[:, 1:].reshape(-1, 3), 0.5 * margin)
     pts[:, 1:] = body.reshape(s, particles - 1, 3)
     corners = torch.as_tensor(verts[root["face_vertices"]])
     meta = dict(generator="ams_torch.preset", preset="ponytail", seed=int(seed), region=region, strands=int(s),
