@@ -114,14 +114,14 @@ def crown_patch(mesh, radius=0.02):
 def sweep_sheet(mesh, out: Path, strands: int = 60, particles: int = 48):
     """Figures 3–4 of the supplement: p_h × p_τ and p_γ × p_τ, as one PNG."""
     patch = crown_patch(mesh)
-    radii = [0.0, 10.0, 25.0, 50.0]
-    droops = [0.0, 0.001, 0.004, 0.016]
+    radii = [0.0, 300.0, 1000.0, 3000.0]
+    droops = [0.0, 0.003, 0.03, 0.3]
     steps = [0.002, 0.004, 0.006]
     fig, axes = plt.subplots(len(steps), len(radii) + len(droops), figsize=(16, 6.4))
     for r, tau in enumerate(steps):
         for c, ph in enumerate(radii):
             g = growth.grow(mesh, region=patch, strands=strands, particles=particles, seed=1, p_tau=tau, p_h=ph,
-                            p_gamma=0.0, noise=0.2, collide=False)
+                            p_gamma=0.3, noise=0.2, phase_jitter=np.pi, collide=False)
             ax = axes[r, c]
             draw(ax, g.rest_positions.numpy(), view="front", linewidth=0.5)
             ax.set_title(f"p_h={ph:g}, p_τ={tau * 1e3:g} mm", fontsize=8)
@@ -139,7 +139,8 @@ def sweep_sheet(mesh, out: Path, strands: int = 60, particles: int = 48):
             a.set_xlim(xl)
             a.set_ylim(yl)
     fig.suptitle("Procedural growth sweeps (supplement Figs. 3–4): left, helix radius p_h × step p_τ (front view); "
-                 "right, droop p_γ × step p_τ (side view). p_Γ=0.2, p_freq=1, p_Ω=0.017, N=%d" % particles,
+                 "right, droop p_γ × step p_τ (side view).\np_Γ=0.2, p_freq=1, p_Ω=0.017, N=%d; left p_γ=0.3, "
+                 "right p_h=0; roots on a 2 cm crown patch, no collisions" % particles,
                  fontsize=10)
     fig.tight_layout()
     fig.savefig(out, dpi=80)
