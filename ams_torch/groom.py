@@ -181,8 +181,9 @@ class Groom:
             mesh's ``faces[root_triangles]``), or ``None``.
         root_rest_frames: (S, 3, 3) float32 tensor, :func:`triangle_frames` of each root's
             triangle on the mesh the groom was grown on (used by :meth:`reattach`), or ``None``.
-        strands: optional list of S float arrays (n_i, 3), metres: the raw polylines of a
-            groom whose strands have different point counts (read from a file).
+        strands: optional list of S float32 arrays (n_i, 3), metres: the raw polylines of a
+            groom whose strands have different point counts (read from a file); converted to
+            float32 on construction.
         metadata: free-form dict (growth parameters, seed, source file, format extras).
     """
 

@@ -66,8 +66,8 @@ bit for bit.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields, replace
-from typing import Any, Callable, Dict, Optional, Sequence, Union
+from dataclasses import asdict, dataclass, fields
+from typing import Any, Dict, Optional
 
 import numpy as np
 import torch

@@ -130,8 +130,7 @@ def test_strands_mode_samples_triangles_by_area():
     # two triangles, areas 1 : 3
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 0, -1], [2, 0, 0], [3, 0, 0], [2, 0, -3.0]]) * 0.01
     f = np.array([[0, 1, 2], [3, 4, 5]])
-    mesh = trimesh.Trimesh(v, f, process=False)
-    g = grow(mesh, region=None, strands=20000, particles=2, seed=5, collide=False)
+    g = grow((v, f), region=None, strands=20000, particles=2, seed=5, collide=False)  # (vertices, faces) works too
     frac = float((g.root_triangles == 1).double().mean())
     assert abs(frac - 0.75) < 0.015
 

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from ..groom import Groom, resample_strands
-from ._common import GroomFileError, check_points, fail
+from ._common import GroomFileError, check_points
 from .cyhair import read_hair, write_hair
 from .npz import read_npz, write_npz
 from .ply import read_ply, write_ply

@@ -23,10 +23,9 @@ from ._common import concat_strands, fail, split_points
 
 def _pxr(path):
     try:
-        from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt  # noqa: F401
+        from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
     except ImportError as err:
         raise ImportError(f"{path}: reading/writing USD needs usd-core (pip install usd-core)") from err
-    from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
     return Gf, Sdf, Tf, Usd, UsdGeom, Vt
 
 
