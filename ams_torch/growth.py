@@ -38,6 +38,12 @@ name                      paper        default   meaning
 ``sdf_resolution``        —            128       resolution of the SDF grid built for collisions
 ========================  ===========  ========  =================================================
 
+Scale of p_h. ``p_dir`` is not normalised, and both the gravity term (which grows like i²) and
+the factor (1 + p_Ω) per step make it longer along the strand, while the helix adds a rotating
+part of fixed size ≈ p_Ω p_h / |e^{i p_freq} − (1 + p_Ω)|. So curls are strongest near the root
+and relax toward the tip, and visible curls on drooping hair need p_h in the hundreds to
+thousands (the presets use 600–3000); with p_γ = 0 a few tens already curl.
+
 Lengths. Without ``length`` a strand grows K = N − 1 steps (N = ``particles``), so its length is
 exactly K·p_τ and no resampling happens: p_τ sets the length, as in the paper's Figures 3–4.
 With ``length`` (a float, an (S,) array or a callable ``f(roots (S, 3), normals (S, 3)) → (S,)``,
