@@ -8,10 +8,15 @@ The public API is small:
 - :func:`solve_banded`: the batched banded block-Cholesky strand solve.
 - :class:`HairHair`: hair–hair interaction settings (``Simulator(..., hair_hair=HairHair())``).
 - :func:`default_head`, :class:`SDFGrid` and the colliders (``Simulator(..., colliders=[...])``).
+- :func:`grow`, :func:`preset`, :class:`Groom`, :func:`read_groom` / :func:`write_groom` (grooms and file formats).
 - :class:`State`, :class:`SimulationDiverged`.
 """
 from .colliders import CapsuleCollider, HollowSphereCollider, MeshCollider, PlaneCollider, SphereCollider
+from . import io
+from .groom import Groom, resample_strands
+from .growth import PRESETS, GrowthParams, grow, preset
 from .hair_hair import HairHair
+from .io import read_groom, write_groom
 from .head import default_head, load_mesh
 from .integrator import SimulationDiverged
 from .model import State
@@ -25,4 +30,6 @@ __version__ = "0.1.0"
 
 __all__ = ["Params", "Simulator", "Pose", "State", "solve_banded", "SimulationDiverged", "HairHair",
            "default_head", "load_mesh", "SDFGrid", "SphereCollider", "MeshCollider", "CapsuleCollider",
-           "PlaneCollider", "HollowSphereCollider", "__version__"]
+           "PlaneCollider", "HollowSphereCollider",
+           "grow", "preset", "GrowthParams", "PRESETS", "Groom", "resample_strands", "io", "read_groom", "write_groom",
+           "__version__"]
