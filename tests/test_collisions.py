@@ -336,41 +336,17 @@ def test_mesh_collider_no_penetration(head_collider):
 # ---------------------------------------------------------------------------------------
 # end to end, through the simulator
 # ---------------------------------------------------------------------------------------
-def make_simulator(rest, params, colliders):
-    """Simulator(..., colliders=...) once the simulator takes them; until then the same
-    wiring by hand (a CollisionStage after inextensibility)."""
-    import inspect
-
-    from ams_torch.simulator import Simulator
-
-    if "colliders" in inspect.signature(Simulator.__init__).parameters:
-        return Simulator(rest, params, colliders=colliders)
-    from ams_torch.colliders import CollisionStage
-
-    sim = Simulator(rest, params)
-    sim.stages.append(CollisionStage(colliders, free=~sim.model.pinned))
-    return sim
-
-
-def step_with(sim, state, pose, collider_poses=None):
-    import inspect
-
-    if "collider_poses" in inspect.signature(sim.step).parameters:
-        return sim.step(state, pose, collider_poses=collider_poses)
-    sim.stages[-1].collider_poses = collider_poses
-    return sim.step(state, pose)
-
-
 def test_swept_sphere_pushes_hair_aside():
     from ams_torch.params import Params
+    from ams_torch.simulator import Simulator
     from ams_torch.testing import sphere_groom
 
     rest = sphere_groom(300, 16, radius=0.1, length=0.25, seed=2)
     params = Params()
     head = SphereCollider((0.0, 0.0, 0.0), 0.1, friction=0.5, follow_head=True)
     ball = SphereCollider((0.0, 0.0, 0.0), 0.04, friction=0.2)
-    sim = make_simulator(rest, params, [head, ball])
-    still = make_simulator(rest, params, [head])
+    sim = Simulator(rest, params, colliders=[head, ball])
+    still = Simulator(rest, params, colliders=[head])
     state, ref = sim.initial_state(), still.initial_state()
     speed = 1.5  # m/s along +x, through the hair hanging at the side of the head
     free = ~sim.model.pinned
@@ -380,8 +356,8 @@ def test_swept_sphere_pushes_hair_aside():
         t = (k + 1) * params.dt
         centre = torch.tensor([-0.25 + speed * t, -0.12, 0.0])
         ball_pose = Pose(torch.eye(3), centre, torch.tensor([speed, 0.0, 0.0]), torch.zeros(3))
-        state = step_with(sim, state, None, [None, ball_pose])
-        ref = step_with(still, ref, None, [None])
+        state = sim.step(state, None, collider_poses=[None, ball_pose])
+        ref = still.step(ref, None)
         d = collider_distances(state.x, [head, ball], resolve_world_poses([head, ball], None, [None, ball_pose]))
         worst = min(worst, float(d[..., free].min()))
         moved = max(moved, float((state.x - ref.x).norm(dim=-1).max()))
@@ -393,11 +369,12 @@ def test_swept_sphere_pushes_hair_aside():
 def test_spinning_head_leaves_no_particle_inside(head_collider):
     from ams_torch.head import hanging_groom
     from ams_torch.params import Params
+    from ams_torch.simulator import Simulator
 
     grid = head_collider.sdf
-    rest = hanging_groom(default_head(), 1000, 16, 0.2, sdf=grid, seed=0)
+    rest = hanging_groom(default_head(), 1000, 32, 0.2, sdf=grid, seed=0)
     params = Params()
-    sim = make_simulator(rest, params, [head_collider])
+    sim = Simulator(rest, params, colliders=[head_collider])
     state = sim.initial_state()
     omega = 2 * math.pi * 5.0  # 5 rev/s about the vertical axis, for 1 s
     free = ~sim.model.pinned
@@ -407,7 +384,7 @@ def test_spinning_head_leaves_no_particle_inside(head_collider):
         t = (k + 1) * params.dt
         pose = Pose.from_rotvec([0.0, omega * t, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, omega, 0.0])
         prev = state.x
-        state = step_with(sim, state, pose)
+        state = sim.step(state, pose)
         d = collider_distances(state.x, [head_collider], resolve_world_poses([head_collider], pose))[0]
         worst = min(worst, float(d[:, free].min()))
         travelled += float((state.x - prev).norm(dim=-1).mean())
