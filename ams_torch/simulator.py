@@ -90,9 +90,10 @@ class Simulator(torch.nn.Module):
             state: current state.
             pose: head pose at the end of the frame (None: the head stays still).
             external_force: (..., S, N, 3) newtons, or ``f(x, v, t) -> force``.
-            collider_poses: new world poses for the colliders from this frame on (a list aligned
-                with ``colliders``, None entries keep a collider's pose; see
-                ``colliders.resolve_world_poses``).
+            collider_poses: new poses for the colliders, in force from this frame on (a list
+                aligned with ``colliders``; None entries keep a collider's pose). They replace
+                each collider's ``pose``: world poses, or poses relative to the head for colliders
+                with ``follow_head=True`` (see ``colliders.resolve_world_poses``).
         Returns:
             the new :class:`State` (``.x``, ``.v``: (..., S, N, 3)).
         Raises:
