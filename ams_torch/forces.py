@@ -13,6 +13,9 @@ import torch.nn.functional as F
 __all__ = [
     "spring_forces",
     "integrity_force",
+    "integrity_elongation_law",
+    "integrity_force_nonhookean",
+    "integrity_yield",
     "angular_force",
     "gravity_force",
     "safe_normalize",
@@ -118,3 +121,86 @@ def angular_force(x: torch.Tensor, ghost: torch.Tensor, stiffness, reaction: boo
 def gravity_force(mass: torch.Tensor, gravity: torch.Tensor) -> torch.Tensor:
     """Weight ``m g``. mass: (..., S, N) kg; gravity: (3,) m/s². Returns (..., S, N, 3) N."""
     return mass[..., None] * gravity
+
+
+def integrity_elongation_law(elongation: torch.Tensor, transition: float, breaking: float, soft_ratio: float):
+    """The non-Hookean integrity curve (SPEC §7, paper Fig. 3) in units of κ_I · L.
+
+    With elongation e (dimensionless, distance / local rest segment length L), t = transition,
+    b = breaking point and ρ = soft_ratio ∈ (0, 1]:
+
+    - e ≤ t: Hookean, ``φ = e``, slope 1;
+    - t < e ≤ b: softening, ``φ = e − (1 − ρ)(e − t)² / (2 (b − t))``, slope falling from 1 to ρ;
+    - e > b: yield, ``φ = φ(b)``, slope 0 (the plastic update then moves the ghost).
+
+    Returns (φ, dφ/de), both shaped like ``elongation``; the force magnitude is κ_I L φ.
+    φ is continuous, C¹ at the transition and non-decreasing, so the tangent stiffness is never
+    negative.
+    """
+    span = breaking - transition
+    over = (elongation - transition).clamp(min=0.0)
+    over_c = over.clamp(max=span)
+    phi = elongation.clamp(max=transition) + over_c - (1.0 - soft_ratio) * over_c * over_c / (2.0 * span)
+    slope = torch.where(elongation <= transition, torch.ones_like(elongation),
+                        torch.where(elongation <= breaking, 1.0 - (1.0 - soft_ratio) * over_c / span,
+                                    torch.zeros_like(elongation)))
+    return phi, slope
+
+
+def integrity_force_nonhookean(x: torch.Tensor, anchor: torch.Tensor, preload: torch.Tensor, stiffness,
+                               segment_length: torch.Tensor, transition: float = 0.5, breaking: float = 1.0,
+                               soft_ratio: float = 0.25):
+    """Non-Hookean integrity spring (SPEC §7): Hookean, then softer, then yielding.
+
+    The ghost is ``y = anchor + preload/κ_I``: ``anchor`` is where the particle sits at rest
+    and ``preload`` the constant sag-free force κ_I·(y − anchor) that holds its weight (SPEC §5;
+    zero without sag-free). The elongation is ``e = |anchor − x| / L`` with L the particle's
+    local rest segment length, i.e. the particle–ghost distance measured from the sag-free
+    equilibrium (with ``sag_free=False`` exactly the particle–ghost distance over L). The force is
+
+        T_I = preload + κ_I L φ(e) d̂,     d = anchor − x,
+
+    with φ from :func:`integrity_elongation_law`; below the transition this equals the
+    Hookean ``κ_I (y − x)`` exactly.
+
+    Args:
+        x, anchor: (..., S, N, 3) m, world positions of the particles and their rest anchors.
+        preload: (..., S, N, 3) N, sag-free preload (world).
+        stiffness: κ_I, N/m (float or (S, 1)/(S, N) tensor).
+        segment_length: (S, N) m, local rest segment length L (> 0).
+        transition, breaking: elongations (dimensionless) where softening and yield begin.
+        soft_ratio: slope of the curve at the breaking point relative to κ_I, in (0, 1].
+    Returns:
+        force: (..., S, N, 3) N.
+        tangent: (..., S, N, 3, 3) N/m, ``κ_I (φ'(e) d̂d̂ᵀ + φ(e)/e (I − d̂d̂ᵀ))``: −∂T_I/∂x, symmetric
+            positive semi-definite (κ_I I below the transition), for the implicit diagonal.
+        elongation: (..., S, N) dimensionless.
+    """
+    kappa = torch.as_tensor(stiffness, dtype=x.dtype, device=x.device)
+    unit, dist = safe_normalize(anchor - x)
+    e = dist / segment_length
+    phi, slope = integrity_elongation_law(e, transition, breaking, soft_ratio)
+    force = preload + (kappa * segment_length * phi)[..., None] * unit
+    secant = torch.where(e > 0, phi / torch.where(e > 0, e, torch.ones_like(e)), torch.ones_like(e))
+    eye = torch.eye(3, dtype=x.dtype, device=x.device)
+    dd = unit[..., :, None] * unit[..., None, :]
+    k = kappa[..., None, None] if kappa.dim() > 0 else kappa  # scalar or (S, 1)/(S, N)
+    tangent = k * (slope[..., None, None] * dd + secant[..., None, None] * (eye - dd))
+    return force, tangent, e
+
+
+def integrity_yield(x_local: torch.Tensor, anchor_local: torch.Tensor, segment_length: torch.Tensor,
+                    breaking: float, free: torch.Tensor) -> torch.Tensor:
+    """Plastic flow of the integrity coupling (SPEC §7): move each anchor so that the
+    elongation is at most the breaking point.
+
+    x_local, anchor_local: (..., S, N, 3) m in the head frame; segment_length: (S, N) m;
+    free: (N,) bool, particles allowed to yield (pinned ones keep their anchor).
+    Returns the new anchors (..., S, N, 3) m: ``x + b L d̂`` where the elongation exceeded b,
+    unchanged elsewhere.
+    """
+    unit, dist = safe_normalize(anchor_local - x_local)
+    limit = breaking * segment_length
+    over = (dist > limit) & free
+    moved = x_local + limit[..., None] * unit
+    return torch.where(over[..., None], moved, anchor_local)

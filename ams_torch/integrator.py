@@ -25,7 +25,7 @@ from .params import Params
 from .pose import Pose
 from .solver import banded_matvec
 
-__all__ = ["assemble_system", "substep", "step", "SimulationDiverged", "check_state", "resolve_pose"]
+__all__ = ["assemble_system", "substep", "local_segment_length", "integrity_plastic_update", "step", "SimulationDiverged", "check_state", "resolve_pose"]
 
 ExternalForce = Union[None, torch.Tensor, Callable[[torch.Tensor, torch.Tensor, float], torch.Tensor]]
 # a stage: (x, v, pose_at_end_of_frame, dt, state_before) -> (x, v)
@@ -58,7 +58,8 @@ def _pad_n(t: torch.Tensor, before: int, after: int) -> torch.Tensor:
 
 def assemble_system(model: Model, params: Params, x: torch.Tensor, v: torch.Tensor,
                     ghost: torch.Tensor, ghost_velocity: torch.Tensor, pin_velocity: torch.Tensor,
-                    h: float, external_force: Optional[torch.Tensor] = None):
+                    h: float, external_force: Optional[torch.Tensor] = None,
+                    ghost_offset: Optional[torch.Tensor] = None):
     """Assemble one substep's SPD block-heptadiagonal system for every strand.
 
     Args:
@@ -68,6 +69,8 @@ def assemble_system(model: Model, params: Params, x: torch.Tensor, v: torch.Tens
         pin_velocity: (..., S, N, 3) m/s, prescribed velocities (read on pinned particles).
         h: substep length Δt', s.
         external_force: (..., S, N, 3) N or None.
+        ghost_offset: (..., S, N, 3) m, world sag-free offset of the ghosts from the particles'
+            rest anchors (only read by the non-Hookean integrity law; None = zero).
     Returns:
         blocks: (..., S, N, 4, 3, 3) lower band, ``blocks[..., i, k] = A[i, i-k]``, kg.
         rhs: (..., S, N, 3), kg·m/s.
@@ -92,7 +95,17 @@ def assemble_system(model: Model, params: Params, x: torch.Tensor, v: torch.Tens
         offdiag.append(_pad_n(-hk, k, 0))
     rhs = m[..., None] * v
 
-    if not _is_zero(params.integrity_stiffness):
+    if not _is_zero(params.integrity_stiffness) and params.integrity_model == "nonhookean":
+        kappa_i = torch.as_tensor(params.integrity_stiffness, dtype=x.dtype, device=x.device)
+        k3 = kappa_i[..., None] if kappa_i.dim() > 0 else kappa_i
+        offset = ghost_offset if ghost_offset is not None else torch.zeros_like(x)
+        f_i, tangent, _ = forces.integrity_force_nonhookean(
+            x, ghost - offset, k3 * offset, kappa_i, local_segment_length(model),
+            params.integrity_transition, params.integrity_break, params.integrity_soft_ratio)
+        force = force + f_i
+        diag = diag + (h * h) * tangent
+        rhs = rhs + (h * h) * torch.einsum("...ij,...j->...i", tangent, ghost_velocity)
+    elif not _is_zero(params.integrity_stiffness):
         kappa_i = params.integrity_stiffness
         force = force + forces.integrity_force(x, ghost, kappa_i)
         ki = _per_particle(kappa_i, x)
@@ -138,9 +151,41 @@ def assemble_system(model: Model, params: Params, x: torch.Tensor, v: torch.Tens
     return blocks, rhs
 
 
-def substep(model: Model, params: Params, x, v, ghost, ghost_velocity, pin_velocity, h, external_force=None):
+def local_segment_length(model: Model) -> torch.Tensor:
+    """(S, N) m: each particle's local rest segment length, the mean of its (one or two)
+    adjacent edge rest lengths; the length unit of the integrity elongation (SPEC §7)."""
+    e = model.edge_rest_length
+    total = F.pad(e, (0, 1)) + F.pad(e, (1, 0))
+    count = F.pad(torch.ones_like(e), (0, 1)) + F.pad(torch.ones_like(e), (1, 0))
+    return total / count
+
+
+def sag_offset_local(model: Model) -> torch.Tensor:
+    """(S, N, 3) m: the sag-free ghost offset in the head frame (zero without sag-free)."""
+    return model.ghost_rest - model.rest_positions
+
+
+def integrity_plastic_update(model: Model, params: Params, x: torch.Tensor, ghost_rest: torch.Tensor,
+                             pose: Pose) -> torch.Tensor:
+    """Yield of the non-Hookean integrity coupling (SPEC §7), applied once per frame.
+
+    x: (..., S, N, 3) m world positions at the end of the frame; ghost_rest: (..., S, N, 3) m
+    head frame; pose: the head pose at the end of the frame. Returns the new ghost_rest: where
+    a free particle's elongation exceeds ``params.integrity_break``, its ghost's rest offset moves
+    (permanently) so the elongation is exactly the breaking point.
+    """
+    offset = sag_offset_local(model)
+    anchor = ghost_rest - offset
+    new_anchor = forces.integrity_yield(pose.to_local(x), anchor, local_segment_length(model),
+                                        params.integrity_break, ~model.pinned)
+    return new_anchor + offset
+
+
+def substep(model: Model, params: Params, x, v, ghost, ghost_velocity, pin_velocity, h, external_force=None,
+            ghost_offset=None):
     """One linearised backward-Euler substep: returns the new velocities (..., S, N, 3) m/s."""
-    blocks, rhs = assemble_system(model, params, x, v, ghost, ghost_velocity, pin_velocity, h, external_force)
+    blocks, rhs = assemble_system(model, params, x, v, ghost, ghost_velocity, pin_velocity, h, external_force,
+                                  ghost_offset)
     return solve_banded(blocks, rhs)
 
 
@@ -219,6 +264,9 @@ def step(model: Model, params: Params, state: State, pose: Optional[Pose] = None
         rest = rest.expand(batch + rest.shape)
     pa = start
     y_a = pa.to_world(state.ghost_rest)
+    nonhookean = params.integrity_model == "nonhookean" and not _is_zero(params.integrity_stiffness)
+    offset_local = sag_offset_local(model) if nonhookean else None
+    offset = pa.rotate(offset_local.expand(x.shape)) if nonhookean else None
     for s in range(msub):
         pb = start.interpolate(end, (s + 1) / msub, dt)
         y_b = pb.to_world(state.ghost_rest)
@@ -226,16 +274,21 @@ def step(model: Model, params: Params, state: State, pose: Optional[Pose] = None
         target = pb.to_world(rest)
         pin_v = torch.where(pinned, (target - x) / h, torch.zeros_like(x))
         f_ext = _external(external_force, x, v, state.time + s * h)
-        v = substep(model, params, x, v, y_a, w, pin_v, h, f_ext)
+        v = substep(model, params, x, v, y_a, w, pin_v, h, f_ext, offset)
         x = torch.where(pinned, target, x + h * v)
         y_a = y_b
+        if nonhookean:
+            offset = pb.rotate(offset_local.expand(x.shape))
     if params.inextensibility:
         fallback = forces.safe_normalize(pose1.rotate(rest[..., 1:, :] - rest[..., :-1, :]))[0]
         x, v = follow_the_leader(x, v, model.edge_rest_length, model.pinned, dt, params.ftl_damping, fallback)
     for stage in stages:
         x, v = stage(x, v, pose1, dt, state)
     v = torch.where(pinned, pose1.velocity_at(x), v)
-    new = State(x=x, v=v, ghost_rest=state.ghost_rest, pose=pose1, time=state.time + dt, frame=state.frame + 1)
+    ghost_rest = state.ghost_rest
+    if nonhookean:
+        ghost_rest = integrity_plastic_update(model, params, x, ghost_rest, pose1)
+    new = State(x=x, v=v, ghost_rest=ghost_rest, pose=pose1, time=state.time + dt, frame=state.frame + 1)
     if params.check_every and new.frame % params.check_every == 0:
         check_state(new, model, params)
     return new

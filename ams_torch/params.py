@@ -39,6 +39,15 @@ class Params:
         bend_scale, torsion_scale: multipliers of κ_L for the bending (i, i+2) and
             torsion (i, i+3) springs (SPEC §2 allows a per-kind scale).
         integrity_stiffness: κ_I, N/m, zero-rest-length spring particle → ghost (SPEC §3).
+        integrity_model: "hookean" (default, linear) or "nonhookean" (SPEC §7: Hookean up to
+            ``integrity_transition``, softer up to ``integrity_break``, plastic beyond; see
+            :func:`forces.integrity_force_nonhookean`).
+        integrity_transition: elongation (particle–ghost distance over the local rest segment
+            length, dimensionless) where the curve starts to soften; default 0.5 (50 %).
+        integrity_break: elongation of the breaking point, > transition; beyond it the ghost's
+            rest offset moves (once per frame) so the elongation stays there; default 1.0.
+        integrity_soft_ratio: slope of the soft branch at the breaking point relative to κ_I,
+            in (0, 1]; default 0.25.
         angular_stiffness: κ_α, N/rad, angular spring toward the ghost segment (SPEC §3).
         particle_mass: kg per particle.
         drag: linear drag rate γ/m, 1/s (force −drag·m·v, world air at rest).
@@ -64,6 +73,10 @@ class Params:
     bend_scale: Scalar = 1.0
     torsion_scale: Scalar = 1.0
     integrity_stiffness: Scalar = 1e-4
+    integrity_model: str = "hookean"
+    integrity_transition: float = 0.5
+    integrity_break: float = 1.0
+    integrity_soft_ratio: float = 0.25
     angular_stiffness: Scalar = 1e-4
     particle_mass: Scalar = 1e-6
     drag: Scalar = 1.5
@@ -94,6 +107,19 @@ class Params:
                 raise ValueError(f"Params.{name} must be non-negative (stiffness/drag); got {v}")
         if not _is_finite(self.particle_mass) or _min_value(self.particle_mass) <= 0:
             raise ValueError(f"Params.particle_mass must be positive (kg); got {self.particle_mass}")
+        if self.integrity_model not in ("hookean", "nonhookean"):
+            raise ValueError(f"Params.integrity_model must be 'hookean' or 'nonhookean'; got {self.integrity_model!r}")
+        for name in ("integrity_transition", "integrity_break", "integrity_soft_ratio"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ValueError(f"Params.{name} must be a finite number; got {v!r}")
+        if not self.integrity_transition > 0:
+            raise ValueError(f"Params.integrity_transition must be positive; got {self.integrity_transition}")
+        if not self.integrity_break > self.integrity_transition:
+            raise ValueError(f"Params.integrity_break must exceed integrity_transition "
+                             f"({self.integrity_transition}); got {self.integrity_break}")
+        if not 0.0 < self.integrity_soft_ratio <= 1.0:
+            raise ValueError(f"Params.integrity_soft_ratio must lie in (0, 1]; got {self.integrity_soft_ratio}")
         if not (isinstance(self.dt, (int, float)) and math.isfinite(self.dt) and self.dt > 0):
             raise ValueError(f"Params.dt must be a positive number of seconds; got {self.dt}")
         if isinstance(self.substeps, bool) or not isinstance(self.substeps, int) or self.substeps < 1:
