@@ -5,7 +5,7 @@ from typing import Optional
 
 import numpy as np
 
-__all__ = ["render_groom"]
+__all__ = ["render_groom", "SequenceRenderer", "render_sequence", "render_strip", "write_video"]
 
 
 def render_groom(x, path: str, head_vertices: Optional[np.ndarray] = None, head_faces: Optional[np.ndarray] = None,
@@ -65,4 +65,180 @@ def render_groom(x, path: str, head_vertices: Optional[np.ndarray] = None, head_
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+    return path
+
+
+_AXES = {"front": (0, 1, 2, 1.0), "side": (2, 1, 0, -1.0), "back": (0, 1, 2, -1.0)}  # (h, v, depth, sign)
+
+
+def _as_np(a) -> np.ndarray:
+    return np.asarray(a.detach().cpu() if hasattr(a, "detach") else a, dtype=np.float64)
+
+
+class SequenceRenderer:
+    """Draws frames of a simulation into RGB arrays with one reused matplotlib (Agg) figure.
+
+    Args:
+        head_vertices, head_faces: (V, 3) m and (F, 3) int, the head mesh in the head frame
+            (moved by each frame's pose), or None.
+        head_radius: draw a sphere of this radius (m) when there is no mesh.
+        view: "front" (look along −z), "side" (along +x) or "back".
+        extent: ((xmin, xmax), (ymin, ymax)) metres of the picture; default from the first frame.
+        size: inches (square); dpi: pixels per inch (size·dpi pixels, rounded to even).
+        max_strands: draw at most this many strands (evenly picked).
+    """
+
+    def __init__(self, head_vertices=None, head_faces=None, head_radius: Optional[float] = None,
+                 view: str = "front", extent=None, size: float = 4.0, dpi: int = 100, max_strands: int = 4000,
+                 title: str = ""):
+        import matplotlib
+
+        matplotlib.use("Agg")
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        if view not in _AXES:
+            raise ValueError(f"view must be one of {sorted(_AXES)}; got {view!r}")
+        self.view, self.extent, self.max_strands, self.title = view, extent, max_strands, title
+        self.head_vertices = None if head_vertices is None else _as_np(head_vertices)
+        self.head_faces = None if head_faces is None else np.asarray(head_faces, dtype=np.int64)
+        self.head_radius = head_radius
+        px = int(round(size * dpi / 2)) * 2  # even: H.264 needs even sizes
+        self.fig = Figure(figsize=(px / dpi, px / dpi), dpi=dpi)
+        self.canvas = FigureCanvasAgg(self.fig)
+        self.ax = self.fig.add_axes((0.0, 0.0, 1.0, 1.0))
+        self.pick = None
+
+    def draw(self, x, rotation=None, translation=None, label: str = "") -> np.ndarray:
+        """One frame: strands x (S, N, 3) m (world), head pose (3, 3)/(3,) (default identity).
+        Returns (H, W, 3) uint8. Strands and head faces are drawn back to front."""
+        from matplotlib.collections import LineCollection, PolyCollection
+
+        x = _as_np(x)
+        if x.ndim != 3 or x.shape[-1] != 3:
+            raise ValueError(f"positions must be (S, N, 3); got {x.shape}")
+        if self.pick is None:
+            self.pick = np.linspace(0, x.shape[0] - 1, min(x.shape[0], self.max_strands)).astype(int)
+            roots = x[self.pick, 0]
+            span = np.ptp(roots, axis=0) + 1e-9
+            self.colour = 0.25 + 0.6 * np.clip((roots - roots.min(0)) / span, 0, 1)
+            self.colour = np.c_[self.colour * np.array([0.9, 0.7, 0.45]), np.full(len(self.pick), 0.85)]
+            if self.extent is None:
+                lo, hi = x.reshape(-1, 3).min(0), x.reshape(-1, 3).max(0)
+                a, b = _AXES[self.view][:2]
+                c = 0.5 * (lo + hi)
+                half = 0.6 * max(hi[a] - lo[a], hi[b] - lo[b], 0.3)
+                self.extent = ((c[a] - half, c[a] + half), (c[b] - half, c[b] + half))
+        x = x[self.pick]
+        a, b, c, sign = _AXES[self.view]
+        ax = self.ax
+        ax.cla()
+        ax.set_axis_off()
+        ax.set_facecolor((1, 1, 1))
+        rot = np.eye(3) if rotation is None else _as_np(rotation)
+        trans = np.zeros(3) if translation is None else _as_np(translation)
+        if self.head_vertices is not None and self.head_faces is not None:
+            v = self.head_vertices @ rot.T + trans
+            tri = v[self.head_faces]
+            n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+            n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-12
+            facing = sign * n[:, c] > 0
+            order = np.argsort(sign * tri[:, :, c].mean(1))
+            order = order[facing[order]]
+            light = np.clip(0.3 + 0.7 * (sign * n[order, c] * 0.8 + n[order, 1] * 0.2), 0, 1)
+            ax.add_collection(PolyCollection(tri[order][:, :, [a, b]], facecolors=np.c_[light, light * 0.88, light * 0.8],
+                                             edgecolors="none", zorder=1))
+        elif self.head_radius:
+            import matplotlib.patches as mpatches
+
+            ax.add_patch(mpatches.Circle((trans[a], trans[b]), self.head_radius, color=(0.85, 0.75, 0.7), zorder=1))
+        # hair behind the head centre first, then the head, then hair in front
+        depth = sign * (x[:, :, c].mean(1) - trans[c])
+        order = np.argsort(depth)
+        behind = order[depth[order] < 0]
+        front = order[depth[order] >= 0]
+        for idx, z in ((behind, 0), (front, 2)):
+            if len(idx):
+                ax.add_collection(LineCollection(x[idx][:, :, [a, b]], colors=self.colour[idx], linewidths=0.6, zorder=z))
+        ax.set_xlim(*self.extent[0])
+        ax.set_ylim(*self.extent[1])
+        ax.set_aspect("equal")
+        text = " ".join(t for t in (self.title, label) if t)
+        if text:
+            ax.text(0.02, 0.97, text, transform=ax.transAxes, va="top", fontsize=8)
+        self.canvas.draw()
+        return np.asarray(self.canvas.buffer_rgba())[..., :3].copy()
+
+
+def write_video(frames, path: str, fps: float = 30.0) -> str:
+    """Write RGB frames (an iterable of (H, W, 3) uint8) to an MP4 (H.264 via imageio-ffmpeg's
+    bundled ffmpeg, no system libraries) atomically (temporary name, then ``os.replace``)."""
+    import os
+
+    import imageio.v2 as imageio
+
+    tmp = f"{path}.tmp{os.getpid()}.mp4"
+    writer = imageio.get_writer(tmp, fps=fps, codec="libx264", quality=7, macro_block_size=2,
+                                ffmpeg_log_level="error")
+    try:
+        for f in frames:
+            writer.append_data(np.asarray(f, dtype=np.uint8))
+    finally:
+        writer.close()
+    os.replace(tmp, path)
+    return path
+
+
+def render_sequence(positions, path: str, rotations=None, translations=None, fps: float = 30.0,
+                    every: int = 1, progress: bool = False, **renderer_args) -> str:
+    """Render a sequence to MP4 (or to a PNG of the last frame if ``path`` ends in .png).
+
+    positions: (F, S, N, 3) m world; rotations (F, 3, 3), translations (F, 3) m the head poses
+    (default identity); ``every``: draw every k-th frame; ``renderer_args`` go to
+    :class:`SequenceRenderer` (head mesh, view, size...). Returns the path.
+    """
+    positions = _as_np(positions)
+    frames = range(0, positions.shape[0], max(1, int(every)))
+    r = SequenceRenderer(**renderer_args)
+    if renderer_args.get("extent") is None:  # frame the whole sequence
+        a, b = _AXES[r.view][:2]
+        lo, hi = positions.reshape(-1, 3).min(0), positions.reshape(-1, 3).max(0)
+        c = 0.5 * (lo + hi)
+        half = 0.55 * max(hi[a] - lo[a], hi[b] - lo[b], 0.3)
+        r.extent = ((c[a] - half, c[a] + half), (c[b] - half, c[b] + half))
+    pose = lambda k: (None if rotations is None else rotations[k],  # noqa: E731
+                      None if translations is None else translations[k])
+    if str(path).lower().endswith(".png"):
+        import imageio.v2 as imageio
+
+        imageio.imwrite(path, r.draw(positions[-1], *pose(positions.shape[0] - 1)))
+        return path
+    it = frames
+    if progress:
+        from tqdm.auto import tqdm
+
+        it = tqdm(frames, desc="rendering", unit="frame")
+    return write_video((r.draw(positions[k], *pose(k), label=f"frame {k + 1}") for k in it), path,
+                       fps=fps / max(1, int(every)))
+
+
+def render_strip(positions, path: str, picks, rotations=None, translations=None, labels=None,
+                 **renderer_args) -> str:
+    """A PNG strip: the frames ``picks`` (indices into positions (F, S, N, 3)) side by side."""
+    import imageio.v2 as imageio
+
+    positions = _as_np(positions)
+    r = SequenceRenderer(**renderer_args)
+    a, b = _AXES[r.view][:2]
+    sel = positions[list(picks)]
+    lo, hi = sel.reshape(-1, 3).min(0), sel.reshape(-1, 3).max(0)
+    c = 0.5 * (lo + hi)
+    half = 0.55 * max(hi[a] - lo[a], hi[b] - lo[b], 0.3)
+    r.extent = ((c[a] - half, c[a] + half), (c[b] - half, c[b] + half))
+    imgs = []
+    for j, k in enumerate(picks):
+        rot = None if rotations is None else rotations[k]
+        tr = None if translations is None else translations[k]
+        imgs.append(r.draw(positions[k], rot, tr, label=labels[j] if labels else f"frame {k + 1}"))
+    imageio.imwrite(path, np.concatenate(imgs, axis=1))
     return path
