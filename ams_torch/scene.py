@@ -456,7 +456,7 @@ def trim_strands(rest: torch.Tensor, x: torch.Tensor, v: torch.Tensor, pose, poi
     i0 = i1 - 1
     s0 = side.gather(1, i0[:, None])[:, 0]
     s1 = side.gather(1, i1[:, None])[:, 0]
-    w = (s0 / (s0 - s1).clamp(min=1e-12)).clamp(0, 1)
+    w = (-s0 / (s1 - s0).clamp(min=1e-12)).clamp(0, 1)  # s0 <= 0 < s1
     a0, a1 = arc.gather(1, i0[:, None])[:, 0], arc.gather(1, i1[:, None])[:, 0]
     frac = torch.where(cut, ((a0 + w * (a1 - a0)) / total).clamp(min=min_fraction, max=1.0), frac)
 
