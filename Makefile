@@ -19,7 +19,7 @@ $(STAMP): pyproject.toml Makefile
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) scripts/demo.py --out out
+	$(PY) -m ams_torch.cli simulate datasets/scenes/default.toml --out out
 
 test: $(STAMP)
 	$(PY) -m pytest -q -ra
