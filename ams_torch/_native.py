@@ -143,7 +143,6 @@ def _get(kind: str) -> Optional[Callable]:
     with _lock:
         st = _state[kind]
         if not st["attempted"]:
-            st["attempted"] = True
             t0 = time.perf_counter()
             try:
                 _ops[kind] = _build_and_load(kind, st)
@@ -152,6 +151,9 @@ def _get(kind: str) -> Optional[Callable]:
                 st["reason"] = str(e)
             except Exception as e:  # a compile or load error: report it, never crash the solve
                 st["reason"] = f"build failed: {type(e).__name__}: {_tail(str(e))}"
+            # (an interrupt, e.g. Ctrl-C during the build, leaves the backend untried: the next
+            # call builds again)
+            st["attempted"] = True
             st["build_seconds"] = round(time.perf_counter() - t0, 3)
             if not st["built"]:
                 _warn_once(kind, st["reason"])

@@ -26,7 +26,7 @@
 //     threads touch consecutive addresses (strand-interleaved, coalesced).
 //   * CPU:  V = a SIMD vector of W values of T, base = per-thread scratch, stride = W, so W
 //     strands are solved at once, lane by lane, with the same arithmetic.
-// `LaneMath<V>` supplies sqrt and reciprocal for V (scalars here; vectors in banded_cpu.cpp).
+// `LaneMath<V>` supplies sqrt and reciprocal for V (scalars here; vectors in banded_simd.h).
 // Arithmetic is + - * on V plus LaneMath, so the CPU build runs the GPU's operation sequence.
 // A non-positive pivot gives NaN (the simulator's divergence guard reports it).
 #pragma once
