@@ -10,6 +10,8 @@ The public API is small:
 - :func:`default_head`, :class:`SDFGrid` and the colliders (``Simulator(..., colliders=[...])``).
 - :func:`grow`, :func:`preset`, :class:`Groom`, :func:`read_groom` / :func:`write_groom` (grooms and file formats).
 - :class:`State`, :class:`SimulationDiverged`.
+- :func:`make_motion` (head motions), :class:`Wind`, :func:`load_scene` (TOML scenes; the
+  ``ams-torch`` command line in :mod:`ams_torch.cli`).
 """
 from .colliders import CapsuleCollider, HollowSphereCollider, MeshCollider, PlaneCollider, SphereCollider
 from . import io
@@ -25,6 +27,9 @@ from .params import Params
 from .pose import Pose
 from .sdf import SDFGrid
 from .simulator import Simulator
+from .motion import make_motion
+from .wind import Wind
+from .scene import SceneError, load_scene
 
 __version__ = "0.1.0"
 
@@ -32,4 +37,4 @@ __all__ = ["Params", "Simulator", "Pose", "State", "solve_banded", "SimulationDi
            "default_head", "load_mesh", "SDFGrid", "SphereCollider", "MeshCollider", "CapsuleCollider",
            "PlaneCollider", "HollowSphereCollider",
            "grow", "preset", "GrowthParams", "PRESETS", "Groom", "resample_strands", "io", "read_groom", "write_groom",
-           "__version__"]
+           "make_motion", "Wind", "load_scene", "SceneError", "__version__"]
