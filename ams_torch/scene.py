@@ -419,14 +419,16 @@ def build(scene: dict, device=None, dtype=torch.float32) -> BuiltScene:
             col_motions.append(make_motion(c["motion"]) if "motion" in c else None)
     hh = HairHair(**scene.get("hair_hair", {})) if stages["hair_hair"] else None
     t1 = time.perf_counter()
-    sim = Simulator(rest, params, device=device, dtype=dtype, hair_hair=hh, colliders=cols or None)
+    motion = make_motion(scene.get("motion"))
+    sim = Simulator(rest, params, device=device, dtype=dtype, pose=motion(0.0, dtype=dtype), hair_hair=hh,
+                    colliders=cols or None)
     if sim.collision_stage is not None:
         for c in cols:
             if hasattr(c, "sdf"):
                 c.sdf  # build (or load) the SDF now, not inside the first frame
     times["simulator"] = time.perf_counter() - t1
     wind = Wind(**scene["wind"]) if "wind" in scene else None
-    return BuiltScene(scene, sim, make_motion(scene.get("motion")), wind, col_motions, mesh, rest, times)
+    return BuiltScene(scene, sim, motion, wind, col_motions, mesh, rest, times)
 
 
 def trim_strands(rest: torch.Tensor, x: torch.Tensor, v: torch.Tensor, pose, point, normal,
@@ -484,7 +486,7 @@ def simulate(run: BuiltScene, frames: Optional[int] = None, progress: bool = Fal
     scene = run.scene
     frames = int(frames or scene["frames"])
     dt = sim.params.dt
-    state = sim.initial_state(run.motion(0.0, device=sim.device, dtype=sim.dtype))
+    state = sim.initial_state()
     timings = {"solve": 0.0}
     sync = (lambda: torch.cuda.synchronize()) if sim.device.type == "cuda" else (lambda: None)  # noqa: E731
 
@@ -494,7 +496,8 @@ def simulate(run: BuiltScene, frames: Optional[int] = None, progress: bool = Fal
         def run_stage(*args):
             sync()
             t = time.perf_counter()
-            out = stage(*args)
+            with torch.profiler.record_function(f"ams_torch.{name}"):
+                out = stage(*args)
             sync()
             timings[name] += time.perf_counter() - t
             return out
@@ -544,7 +547,8 @@ def simulate(run: BuiltScene, frames: Optional[int] = None, progress: bool = Fal
             cposes = [None if m is None else m(t_end, device=sim.device, dtype=sim.dtype) for m in run.collider_motions]
         sync()
         t0 = time.perf_counter()
-        state = sim.step(state, pose, external_force=wind, collider_poses=cposes)
+        with torch.profiler.record_function("ams_torch.step"):
+            state = sim.step(state, pose, external_force=wind, collider_poses=cposes)
         sync()
         wall += time.perf_counter() - t0
         xs.append(state.x.detach().to("cpu", torch.float32).numpy())
