@@ -119,3 +119,22 @@ class LinearHairSkinning(torch.nn.Module):
         fr = f[..., idx, :, :, :]  # (..., S, K, N, 3, 3)
         moved = g + (fr @ self.local_offsets.to(guides)[..., None])[..., 0]
         return (self.weights.to(guides)[..., None, None] * moved).sum(-3)
+
+    def gathered(self, guides_k: torch.Tensor, strands: torch.Tensor,
+                 root_rotation: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """Skin a subset of strands from their own K guides only (for training in strand batches).
+
+        guides_k: (B, K, N, 3) metres, the current guides ``guide_index[strands]`` of each item;
+        strands: (B,) long dense strand indices; root_rotation: (B, 3, 3) head rotation or None.
+        Returns (B, N, 3) metres, equal to ``forward(...)[strands]``.
+        """
+        idx = self.guide_index[strands]  # (B, K)
+        t0 = self.rest_first_tangent.to(guides_k)[idx]  # (B, K, 3)
+        if root_rotation is not None:
+            root = root_rotation.to(guides_k)[..., None, :, :].expand(guides_k.shape[:-2] + (3, 3))
+        else:
+            cur = _unit(guides_k[..., 1, :] - guides_k[..., 0, :])
+            root = min_rotation(t0.expand_as(cur), cur)
+        f = guide_frames(guides_k, root, t0)  # (B, K, N, 3, 3)
+        moved = guides_k + (f @ self.local_offsets.to(guides_k)[strands][..., None])[..., 0]
+        return (self.weights.to(guides_k)[strands][..., None, None] * moved).sum(-3)

@@ -141,3 +141,106 @@ def test_penetration_and_jitter():
     # second differences at t = 1, 2, 3 are 1, −2, 1 mm: mean 4/3 mm
     assert metrics.temporal_jitter(kicked) == pytest.approx(4.0 / 3.0)
     assert metrics.ms_per_frame(lambda i: None, 3) >= 0.0
+
+
+# -- data, upsampler, training --------------------------------------------------------------
+import importlib.util  # noqa: E402
+import json  # noqa: E402
+import os  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import torch.multiprocessing as mp  # noqa: E402
+
+from baselines.data import HairDataset, generate_dataset  # noqa: E402
+from baselines.upsampler import GuideUpsampler, load_checkpoint  # noqa: E402
+
+_ROOT = Path(__file__).resolve().parents[1]
+
+
+def _train_module():
+    spec = importlib.util.spec_from_file_location("train_upsampler", _ROOT / "scripts" / "train_upsampler.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory):
+    path = tmp_path_factory.mktemp("baselines") / "tiny.h5"
+    generate_dataset(str(path), strands=48, particles=8, sequences=2, frames=8, seed=1)
+    return str(path)
+
+
+def _args(data, out, steps, extra=()):
+    return ["--data", data, "--out", out, "--guides", "8", "--steps", str(steps), "--batch", "256",
+            "--lr", "3e-3", "--dtype", "float64", "--hidden", "32", "--layers", "2", "--no-progress",
+            "--checkpoint-every", "1000", "--threads", "0", *extra]
+
+
+def test_dataset_reader(tiny_data):
+    ds = HairDataset(tiny_data, window=3, stride=2)
+    assert ds.names == ["seq_000", "seq_001"] and len(ds) == 2 * 3
+    item = ds[4]
+    assert item["positions"].shape == (3, 48, 8, 3) and item["sequence"] == 1 and item["start"] == 2
+    assert torch.isfinite(item["positions"]).all()
+    # the dense strands moved (the head shook) and roots follow the head rigidly
+    x, rot, trans = ds.frames()
+    assert (x - ds.rest).norm(dim=-1).max() > 1e-3
+    roots = ds.rest[:, 0] @ rot.transpose(-1, -2) + trans[:, None]
+    assert (roots - x[:, :, 0]).abs().max() < 1e-5
+    assert torch.equal(ds.fps_order[:8], select_guides(ds.rest[:, 0], 8))
+
+
+def test_upsampler_is_small_and_starts_at_skinning(tiny_data):
+    ds = HairDataset(tiny_data)
+    x, rot, trans = ds.frames()
+    g = ds.fps_order[:8]
+    up = GuideUpsampler(ds.rest, ds.rest[g], k=4)
+    assert sum(p.numel() for p in up.parameters()) < 300_000
+    out = up(x[:4, g], rot[:4], trans[:4])
+    assert out.shape == (4, 48, 8, 3)
+    assert torch.equal(out, up.skin(x[:4, g], rot[:4]))
+
+
+def test_upsampler_trains_saves_reloads_resumes(tiny_data, tmp_path):
+    tu = _train_module()
+    a = tu.main(_args(tiny_data, str(tmp_path / "a.pt"), 30))
+    h = a["history"]
+    assert len(h) == 30 and sum(h[-5:]) < 0.7 * sum(h[:5])
+    model, blob = load_checkpoint(str(tmp_path / "a.pt"))
+    ds = HairDataset(tiny_data)
+    x, rot, trans = ds.frames()
+    g = blob["guides"]
+    assert torch.equal(model(x[:3, g].double(), rot[:3].double(), trans[:3].double()),
+                       a["model"](x[:3, g].double(), rot[:3].double(), trans[:3].double()))
+    # resumption: 12 steps, then resume to 30, equals 30 straight steps
+    b_path = str(tmp_path / "b.pt")
+    tu.main(_args(tiny_data, b_path, 12))
+    b = tu.main(_args(tiny_data, b_path, 30, ["--resume"]))
+    assert b["history"][:12] == h[:12]
+    assert b["history"] == pytest.approx(h, rel=1e-10, abs=1e-12)
+    for p, q in zip(a["model"].parameters(), b["model"].parameters()):
+        assert torch.allclose(p, q, rtol=1e-9, atol=1e-12)
+
+
+def _ddp_worker(rank, world, argv, store):
+    os.environ.update(RANK=str(rank), WORLD_SIZE=str(world), LOCAL_RANK=str(rank), MASTER_ADDR="127.0.0.1",
+                      GLOO_SOCKET_IFNAME="lo")
+    _train_module().main(argv + ["--init-method", f"file://{store}"])
+
+
+def test_ddp_two_processes_match_one(tiny_data, tmp_path):
+    tu = _train_module()
+    one = tu.main(_args(tiny_data, str(tmp_path / "one.pt"), 8))["history"]
+    hist = tmp_path / "two.json"
+    argv = _args(tiny_data, str(tmp_path / "two.pt"), 8, ["--history", str(hist)])
+    # file:// rendezvous (no TCP store); gloo on the loopback interface only
+    mp.start_processes(_ddp_worker, args=(2, argv, str(tmp_path / "store")), nprocs=2, join=True,
+                       start_method="spawn")
+    two = json.loads(hist.read_text())
+    assert len(two) == 8
+    assert two == pytest.approx(one, rel=1e-9, abs=1e-12)
+    m1, _ = load_checkpoint(str(tmp_path / "one.pt"))
+    m2, _ = load_checkpoint(str(tmp_path / "two.pt"))
+    for p, q in zip(m1.parameters(), m2.parameters()):
+        assert torch.allclose(p, q, rtol=1e-8, atol=1e-12)

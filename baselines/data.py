@@ -1,0 +1,145 @@
+"""A small simulated dataset for the baselines: generator and reader (HDF5).
+
+File layout (lengths in metres, float32; ``F`` frames, ``S`` strands, ``N`` particles):
+
+- ``/rest`` (S, N, 3): rest shape in the head frame; ``/fps_order`` (S,): farthest-point order of
+  the roots (the first G entries are the G-guide choice of :func:`baselines.select_guides`).
+- ``/<sequence>/positions`` (F, S, N, 3) dense AMS positions (world), ``/<sequence>/rotation``
+  (F, 3, 3) and ``/<sequence>/translation`` (F, 3) the head pose at the end of each frame,
+  ``/<sequence>/collider_centre`` (F, 3) the centre of a swept sphere (attrs ``collider_radius``),
+  when the sequence has one. Attributes of the file: ``dt`` (s), ``strands``, ``particles``.
+"""
+from __future__ import annotations
+
+import math
+import os
+from typing import Dict, List, Optional, Sequence
+
+import h5py
+import numpy as np
+import torch
+
+import ams_torch as at
+from ams_torch.testing import shake_poses, sphere_groom
+
+from .guides import fps_order
+
+__all__ = ["random_motion", "sweep_poses", "simulate_sequence", "generate_dataset", "HairDataset",
+           "read_rest"]
+
+
+def random_motion(frames: int, dt: float, rng: np.random.Generator, scale: float = 1.0) -> List[at.Pose]:
+    """A random head shake (random axis, amplitude 0.3–0.9 rad, 0.8–2 Hz, translation ≤ 5 cm)."""
+    axis = rng.normal(size=3) + np.array([0.0, 1.5, 0.0])
+    return shake_poses(frames, dt, amplitude=scale * float(rng.uniform(0.3, 0.9)),
+                       frequency=float(rng.uniform(0.8, 2.0)), axis=tuple(axis / np.linalg.norm(axis)),
+                       translation_amplitude=tuple(scale * rng.uniform(-0.05, 0.05, size=3)))
+
+
+def sweep_poses(frames: int, dt: float, start, end) -> List[at.Pose]:
+    """A collider frame moving at constant speed from ``start`` to ``end`` (metres) over the frames."""
+    start, end = np.asarray(start, float), np.asarray(end, float)
+    vel = (end - start) / (frames * dt)
+    out = []
+    for k in range(1, frames + 1):
+        p = start + (end - start) * k / frames
+        out.append(at.Pose(torch.eye(3), torch.tensor(p, dtype=torch.float32),
+                           torch.tensor(vel, dtype=torch.float32), torch.zeros(3)))
+    return out
+
+
+def simulate_sequence(rest: torch.Tensor, head_poses: Sequence[at.Pose], colliders: Sequence = (),
+                      collider_poses: Optional[Sequence[Sequence[at.Pose]]] = None,
+                      params: Optional[at.Params] = None, dtype=torch.float32) -> torch.Tensor:
+    """Dense AMS simulation of ``rest`` (S, N, 3) m. ``collider_poses[f]`` is the list of world
+    poses of the colliders at frame f. Returns positions (F, S, N, 3) metres."""
+    sim = at.Simulator(rest, params or at.Params(), dtype=dtype, colliders=list(colliders) or None)
+    state = sim.initial_state()
+    xs = []
+    for f, pose in enumerate(head_poses):
+        cp = None if not colliders else list(collider_poses[f])
+        state = sim.step(state, pose, collider_poses=cp)
+        xs.append(state.x)
+    return torch.stack(xs)
+
+
+def generate_dataset(path: str, strands: int = 256, particles: int = 12, sequences: int = 3,
+                     frames: int = 30, seed: int = 0, sphere: bool = True,
+                     params: Optional[at.Params] = None) -> str:
+    """Simulate ``sequences`` random shakes of a ``sphere_groom`` (half of them with a sphere of
+    radius 6 cm swept through the hair) and write them to ``path`` (atomically). Returns path."""
+    params = params or at.Params()
+    rng = np.random.default_rng(seed)
+    rest = sphere_groom(strands, particles, seed=seed)
+    tmp = f"{path}.tmp{os.getpid()}"
+    with h5py.File(tmp, "w") as h:
+        h.attrs.update(dt=params.dt, strands=strands, particles=particles)
+        h["rest"] = rest.numpy()
+        h["fps_order"] = fps_order(rest[:, 0], strands).numpy()
+        for q in range(sequences):
+            poses = random_motion(frames, params.dt, rng)
+            cols, cposes, centres = [], None, None
+            if sphere and q % 2 == 1:
+                z = float(rng.uniform(-0.15, 0.15))
+                y = float(rng.uniform(-0.15, -0.05))
+                sweep = sweep_poses(frames, params.dt, (-0.45, y, z), (0.45, y, z))
+                cols = [at.SphereCollider(radius=0.06)]
+                cposes = [[p] for p in sweep]
+                centres = np.stack([p.translation.numpy() for p in sweep])
+            x = simulate_sequence(rest, poses, cols, cposes, params)
+            g = h.create_group(f"seq_{q:03d}")
+            g["positions"] = x.numpy().astype(np.float32)
+            g["rotation"] = torch.stack([p.rotation for p in poses]).numpy()
+            g["translation"] = torch.stack([p.translation for p in poses]).numpy()
+            if centres is not None:
+                g["collider_centre"] = centres.astype(np.float32)
+                g.attrs["collider_radius"] = 0.06
+    os.replace(tmp, path)
+    return path
+
+
+def read_rest(path: str):
+    """(rest (S, N, 3) float32 tensor, fps_order (S,) long tensor) of a dataset file."""
+    with h5py.File(path, "r") as h:
+        return torch.from_numpy(h["rest"][...]), torch.from_numpy(h["fps_order"][...]).long()
+
+
+class HairDataset(torch.utils.data.Dataset):
+    """Windows of ``window`` consecutive frames from the sequences of a dataset file.
+
+    Loads the chosen sequences into memory. Item i is a dict with ``positions`` (W, S, N, 3) m,
+    ``rotation`` (W, 3, 3), ``translation`` (W, 3) m, ``sequence`` (int) and ``start`` (frame).
+    Windows start every ``stride`` frames; their order is fixed (sequence, then start).
+    """
+
+    def __init__(self, path: str, window: int = 1, stride: int = 1, sequences: Optional[Sequence[str]] = None):
+        with h5py.File(path, "r") as h:
+            names = sorted(k for k in h.keys() if k.startswith("seq_"))
+            self.names = [n for n in names if sequences is None or n in sequences]
+            self.rest = torch.from_numpy(h["rest"][...])
+            self.fps_order = torch.from_numpy(h["fps_order"][...]).long()
+            self.dt = float(h.attrs["dt"])
+            self.data: List[Dict[str, torch.Tensor]] = [
+                {k: torch.from_numpy(h[n][k][...]) for k in ("positions", "rotation", "translation")}
+                for n in self.names]
+        if window < 1 or stride < 1:
+            raise ValueError("window and stride must be ≥ 1")
+        self.window = window
+        self.items = [(q, s) for q, d in enumerate(self.data)
+                      for s in range(0, d["positions"].shape[0] - window + 1, stride)]
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, i: int) -> Dict[str, torch.Tensor]:
+        q, s = self.items[i]
+        d = self.data[q]
+        w = slice(s, s + self.window)
+        return {"positions": d["positions"][w], "rotation": d["rotation"][w],
+                "translation": d["translation"][w], "sequence": q, "start": s}
+
+    def frames(self):
+        """All frames of the loaded sequences: positions (T, S, N, 3), rotation (T, 3, 3),
+        translation (T, 3), concatenated in sequence order."""
+        cat = lambda k: torch.cat([d[k] for d in self.data])  # noqa: E731
+        return cat("positions"), cat("rotation"), cat("translation")
