@@ -4,7 +4,8 @@
                                   [--out DIR] [--no-video]
         → DIR/sequence.h5 (dataset ``positions`` (F, S, N, 3) float32 m, world frame;
           ``rotations`` (F, 3, 3), ``translations`` (F, 3) m head poses; ``rest_positions``
-          (S, N, 3); attrs ``scene``, ``params``, ``ms_per_frame`` (JSON), ``dt`` s) and
+          (S, N, 3); ``collider_rotations``/``collider_translations`` (F, C, 3, 3)/(F, C, 3) when
+          the scene has [[colliders]]; attrs ``scene``, ``params``, ``ms_per_frame`` (JSON), ``dt`` s) and
           DIR/video.mp4; prints ms/frame per stage.
     ams-torch render FILE.h5 [--out video.mp4|frame.png] [--view front|side|back] [--every k]
     ams-torch info
@@ -34,6 +35,9 @@ def write_sequence(path: str, result: dict, scene: dict, params, rest: np.ndarra
         f.create_dataset("rotations", data=result["rotations"].astype(np.float32))
         f.create_dataset("translations", data=result["translations"].astype(np.float32))
         f.create_dataset("rest_positions", data=np.asarray(rest, dtype=np.float32))
+        for k in ("collider_rotations", "collider_translations"):
+            if k in result:
+                f.create_dataset(k, data=result[k].astype(np.float32))
         f.attrs["scene"] = json.dumps(scene)
         f.attrs["params"] = json.dumps(params.to_dict())
         f.attrs["ms_per_frame"] = json.dumps(result["ms_per_frame"])
@@ -45,7 +49,8 @@ def write_sequence(path: str, result: dict, scene: dict, params, rest: np.ndarra
 
 def read_sequence(path: str) -> dict:
     """Read a sequence written by :func:`write_sequence`: positions (F, S, N, 3), rotations,
-    translations, rest_positions and the parsed ``scene``/``params``/``ms_per_frame``, ``dt``."""
+    translations, rest_positions (and collider_rotations (F, C, 3, 3), collider_translations
+    (F, C, 3) when the scene has colliders) and the parsed ``scene``/``params``/``ms_per_frame``, ``dt``."""
     import h5py
 
     if not os.path.isfile(path):
@@ -53,7 +58,8 @@ def read_sequence(path: str) -> dict:
     with h5py.File(path, "r") as f:
         if "positions" not in f:
             raise ValueError(f"{path}: no 'positions' dataset (not an ams-torch sequence)")
-        out = {k: f[k][()] for k in ("positions", "rotations", "translations", "rest_positions") if k in f}
+        out = {k: f[k][()] for k in ("positions", "rotations", "translations", "rest_positions",
+                                     "collider_rotations", "collider_translations") if k in f}
         for k in ("scene", "params", "ms_per_frame"):
             out[k] = json.loads(f.attrs[k]) if k in f.attrs else {}
         out["dt"] = float(f.attrs.get("dt", 1.0 / 60.0))
@@ -88,7 +94,9 @@ def _render(seq: dict, scene: dict, path: str, view: Optional[str] = None, every
     fps = r.get("fps", 1.0 / seq["dt"])
     return render_sequence(seq["positions"], path, rotations=seq.get("rotations"),
                            translations=seq.get("translations"), fps=fps, every=every or r.get("every", 1),
-                           progress=progress, head_vertices=v, head_faces=f, head_radius=radius,
+                           progress=progress, colliders=scene.get("colliders", []),
+                           collider_rotations=seq.get("collider_rotations"),
+                           collider_translations=seq.get("collider_translations"), head_vertices=v, head_faces=f, head_radius=radius,
                            view=view or r.get("view", "front"), size=r.get("size", 4.0), title=scene.get("name", ""))
 
 

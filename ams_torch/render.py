@@ -5,7 +5,7 @@ from typing import Optional
 
 import numpy as np
 
-__all__ = ["render_groom", "SequenceRenderer", "render_sequence", "render_strip", "write_video"]
+__all__ = ["render_groom", "SequenceRenderer", "render_sequence", "render_strip", "write_video", "collider_shapes"]
 
 
 def render_groom(x, path: str, head_vertices: Optional[np.ndarray] = None, head_faces: Optional[np.ndarray] = None,
@@ -109,8 +109,10 @@ class SequenceRenderer:
         self.ax = self.fig.add_axes((0.0, 0.0, 1.0, 1.0))
         self.pick = None
 
-    def draw(self, x, rotation=None, translation=None, label: str = "") -> np.ndarray:
+    def draw(self, x, rotation=None, translation=None, label: str = "", shapes=()) -> np.ndarray:
         """One frame: strands x (S, N, 3) m (world), head pose (3, 3)/(3,) (default identity).
+        ``shapes``: colliders to outline, dicts ``{"type": "sphere"|"hollow_sphere"|"capsule",
+        "center"/"a"/"b": world points (3,) m, "radius": m, "thickness": m}``.
         Returns (H, W, 3) uint8. Strands and head faces are drawn back to front."""
         from matplotlib.collections import LineCollection, PolyCollection
 
@@ -163,11 +165,49 @@ class SequenceRenderer:
         ax.set_xlim(*self.extent[0])
         ax.set_ylim(*self.extent[1])
         ax.set_aspect("equal")
+        self._draw_shapes(shapes, a, b)
         text = " ".join(t for t in (self.title, label) if t)
         if text:
             ax.text(0.02, 0.97, text, transform=ax.transAxes, va="top", fontsize=8)
         self.canvas.draw()
         return np.asarray(self.canvas.buffer_rgba())[..., :3].copy()
+
+    def _draw_shapes(self, shapes, a: int, b: int) -> None:
+        import matplotlib.patches as mpatches
+
+        style = dict(fill=False, edgecolor=(0.2, 0.35, 0.8), linewidth=1.2, zorder=3)
+        for sh in shapes:
+            kind = sh["type"]
+            if kind in ("sphere", "hollow_sphere"):
+                c = np.asarray(sh["center"], dtype=np.float64)
+                self.ax.add_patch(mpatches.Circle((c[a], c[b]), sh["radius"], **style))
+                if kind == "hollow_sphere":
+                    self.ax.add_patch(mpatches.Circle((c[a], c[b]), sh["radius"] - sh["thickness"], **style))
+            elif kind == "capsule":
+                p, q = np.asarray(sh["a"], dtype=np.float64)[[a, b]], np.asarray(sh["b"], dtype=np.float64)[[a, b]]
+                d = q - p
+                n = np.array([-d[1], d[0]]) / (np.linalg.norm(d) + 1e-12) * sh["radius"]
+                self.ax.add_patch(mpatches.Polygon([p + n, q + n, q - n, p - n], closed=True, **style))
+                for e in (p, q):
+                    self.ax.add_patch(mpatches.Circle(tuple(e), sh["radius"], **style))
+
+
+def collider_shapes(specs, rotations, translations) -> list:
+    """World outlines for :meth:`SequenceRenderer.draw` from scene collider specs (dicts with
+    ``type`` and local ``center``/``a``/``b``/``radius``/``thickness``) and their world poses
+    rotations (C, 3, 3), translations (C, 3) m. Planes are not drawn."""
+    out = []
+    for spec, r, t in zip(specs, rotations, translations):
+        r, t = np.asarray(r, dtype=np.float64), np.asarray(t, dtype=np.float64)
+        kind = spec["type"]
+        if kind in ("sphere", "hollow_sphere"):
+            c = r @ np.asarray(spec.get("center", (0.0, 0.0, 0.0)), dtype=np.float64) + t
+            out.append({"type": kind, "center": c, "radius": float(spec.get("radius", 0.1 if kind == "sphere" else 0.2)),
+                        "thickness": float(spec.get("thickness", 0.02))})
+        elif kind == "capsule":
+            out.append({"type": "capsule", "a": r @ np.asarray(spec.get("a", (0.0, 0.0, 0.0))) + t,
+                        "b": r @ np.asarray(spec.get("b", (0.0, 0.1, 0.0))) + t, "radius": float(spec.get("radius", 0.05))})
+    return out
 
 
 def write_video(frames, path: str, fps: float = 30.0) -> str:
@@ -190,12 +230,15 @@ def write_video(frames, path: str, fps: float = 30.0) -> str:
 
 
 def render_sequence(positions, path: str, rotations=None, translations=None, fps: float = 30.0,
-                    every: int = 1, progress: bool = False, **renderer_args) -> str:
+                    every: int = 1, progress: bool = False, colliders=(), collider_rotations=None,
+                    collider_translations=None, **renderer_args) -> str:
     """Render a sequence to MP4 (or to a PNG of the last frame if ``path`` ends in .png).
 
     positions: (F, S, N, 3) m world; rotations (F, 3, 3), translations (F, 3) m the head poses
-    (default identity); ``every``: draw every k-th frame; ``renderer_args`` go to
-    :class:`SequenceRenderer` (head mesh, view, size...). Returns the path.
+    (default identity); ``every``: draw every k-th frame; ``colliders``: scene collider specs
+    outlined with their world poses ``collider_rotations`` (F, C, 3, 3) and
+    ``collider_translations`` (F, C, 3) m; ``renderer_args`` go to :class:`SequenceRenderer`
+    (head mesh, view, size...). Returns the path.
     """
     positions = _as_np(positions)
     frames = range(0, positions.shape[0], max(1, int(every)))
@@ -208,23 +251,27 @@ def render_sequence(positions, path: str, rotations=None, translations=None, fps
         r.extent = ((c[a] - half, c[a] + half), (c[b] - half, c[b] + half))
     pose = lambda k: (None if rotations is None else rotations[k],  # noqa: E731
                       None if translations is None else translations[k])
+    shapes = lambda k: collider_shapes(colliders, collider_rotations[k], collider_translations[k]) \
+        if len(colliders) and collider_rotations is not None else ()  # noqa: E731
     if str(path).lower().endswith(".png"):
         import imageio.v2 as imageio
 
-        imageio.imwrite(path, r.draw(positions[-1], *pose(positions.shape[0] - 1)))
+        last = positions.shape[0] - 1
+        imageio.imwrite(path, r.draw(positions[-1], *pose(last), shapes=shapes(last)))
         return path
     it = frames
     if progress:
         from tqdm.auto import tqdm
 
         it = tqdm(frames, desc="rendering", unit="frame")
-    return write_video((r.draw(positions[k], *pose(k), label=f"frame {k + 1}") for k in it), path,
+    return write_video((r.draw(positions[k], *pose(k), label=f"frame {k + 1}", shapes=shapes(k)) for k in it), path,
                        fps=fps / max(1, int(every)))
 
 
-def render_strip(positions, path: str, picks, rotations=None, translations=None, labels=None,
-                 **renderer_args) -> str:
-    """A PNG strip: the frames ``picks`` (indices into positions (F, S, N, 3)) side by side."""
+def render_strip(positions, path: str, picks, rotations=None, translations=None, labels=None, colliders=(),
+                 collider_rotations=None, collider_translations=None, **renderer_args) -> str:
+    """A PNG strip: the frames ``picks`` (indices into positions (F, S, N, 3)) side by side
+    (arguments as :func:`render_sequence`)."""
     import imageio.v2 as imageio
 
     positions = _as_np(positions)
@@ -239,6 +286,8 @@ def render_strip(positions, path: str, picks, rotations=None, translations=None,
     for j, k in enumerate(picks):
         rot = None if rotations is None else rotations[k]
         tr = None if translations is None else translations[k]
-        imgs.append(r.draw(positions[k], rot, tr, label=labels[j] if labels else f"frame {k + 1}"))
+        shapes = collider_shapes(colliders, collider_rotations[k], collider_translations[k]) \
+            if len(colliders) and collider_rotations is not None else ()
+        imgs.append(r.draw(positions[k], rot, tr, label=labels[j] if labels else f"frame {k + 1}", shapes=shapes))
     imageio.imwrite(path, np.concatenate(imgs, axis=1))
     return path

@@ -525,7 +525,9 @@ def simulate(run: BuiltScene, frames: Optional[int] = None, progress: bool = Fal
             return out
 
     trim = scene.get("trim")
-    xs, rots, trans = [], [], []
+    xs, rots, trans, crots, ctrans = [], [], [], [], []
+    specs = scene["colliders"] if sim.collision_stage is not None else []
+    scene_motions = run.collider_motions[len(run.collider_motions) - len(specs):]
     it = range(frames)
     if progress:
         from tqdm.auto import tqdm
@@ -554,6 +556,10 @@ def simulate(run: BuiltScene, frames: Optional[int] = None, progress: bool = Fal
         xs.append(state.x.detach().to("cpu", torch.float32).numpy())
         rots.append(state.pose.rotation.detach().cpu().numpy())
         trans.append(state.pose.translation.detach().cpu().numpy())
+        if specs:
+            cr, ct = _collider_world_poses(specs, scene_motions, t_end, state.pose)
+            crots.append(cr)
+            ctrans.append(ct)
         if on_frame is not None:
             on_frame(k, state)
     staged = sum(v for k, v in timings.items() if k not in ("solve", "trim"))
@@ -561,8 +567,30 @@ def simulate(run: BuiltScene, frames: Optional[int] = None, progress: bool = Fal
     ms = {k: 1e3 * v / frames for k, v in timings.items()}
     ms["total"] = 1e3 * wall / frames
     run.sim = sim
-    return {"positions": np.stack(xs), "rotations": np.stack(rots), "translations": np.stack(trans),
-            "ms_per_frame": ms, "state": state}
+    out = {"positions": np.stack(xs), "rotations": np.stack(rots), "translations": np.stack(trans),
+           "ms_per_frame": ms, "state": state}
+    if specs:
+        out["collider_rotations"], out["collider_translations"] = np.stack(crots), np.stack(ctrans)
+    return out
+
+
+def _collider_world_poses(specs, motions, t: float, head_pose) -> tuple:
+    """World rotations (C, 3, 3) and translations (C, 3) m of the scene's colliders at time t
+    (their motion's pose, relative to the head when ``follow_head``), for drawing."""
+    rots, trans = [], []
+    hr = head_pose.rotation.detach().cpu().double().numpy()
+    ht = head_pose.translation.detach().cpu().double().numpy()
+    for spec, m in zip(specs, motions):
+        if m is not None:
+            p = m(t, dtype=torch.float64)
+            r, tr = p.rotation.numpy(), p.translation.numpy()
+        else:
+            r, tr = np.eye(3), np.zeros(3)
+        if spec.get("follow_head", False):
+            r, tr = hr @ r, hr @ tr + ht
+        rots.append(r)
+        trans.append(tr)
+    return np.stack(rots), np.stack(trans)
 
 
 def _apply_trim(run: BuiltScene, state, trim: dict):

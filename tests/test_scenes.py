@@ -37,6 +37,8 @@ def test_every_scene_runs_a_few_frames(path):
     assert (run.sim.hair_hair_grid is not None) == scene["stages"]["hair_hair"]
     assert (run.sim.collision_stage is not None) == scene["stages"]["collisions"]
     assert set(res["ms_per_frame"]) >= {"solve", "total"}
+    if scene["colliders"]:  # world poses of the scene's colliders, for drawing
+        assert res["collider_translations"].shape == (3, len(scene["colliders"]), 3)
 
 
 def test_scene_without_stages_builds_neither():

@@ -41,7 +41,9 @@ def main(argv=None) -> int:
         r = scene.get("render", {})
         path = os.path.join(HERE, f"{name}.png")
         render_strip(res["positions"], path, picks, res["rotations"], res["translations"],
-                     labels=[f"{name} t = {(k + 1) * dt:.2f} s" for k in picks], head_vertices=v, head_faces=faces,
+                     labels=[f"{name} t = {(k + 1) * dt:.2f} s" for k in picks], colliders=scene["colliders"],
+                     collider_rotations=res.get("collider_rotations"),
+                     collider_translations=res.get("collider_translations"), head_vertices=v, head_faces=faces,
                      head_radius=radius, view=r.get("view", "front"), size=3.0, dpi=90)
         ms = ", ".join(f"{k} {x:.1f}" for k, x in res["ms_per_frame"].items())
         print(f"{name}: {res['positions'].shape[1]} strands, {f} frames in {time.perf_counter() - t0:.1f} s "
