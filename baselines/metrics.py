@@ -86,12 +86,14 @@ def stack_poses(poses: Sequence[Pose]) -> Pose:
 
 
 def penetration(x: torch.Tensor, colliders: Sequence, world_poses: Sequence[Optional[Pose]],
-                pinned: int = 0) -> Dict[str, float]:
+                pinned: int = 0, tolerance: float = 1e-5) -> Dict[str, float]:
     """Vertices inside colliders.
 
     x: (F, S, N, 3) or (S, N, 3) world positions, metres; colliders: ams_torch colliders;
     world_poses: one world Pose per collider, batched (F, 3, 3) per frame for sequences
-    (see :func:`stack_poses`) or unbatched. Vertices before index ``pinned`` are skipped.
+    (see :func:`stack_poses`) or unbatched. Vertices before index ``pinned`` are skipped. A vertex
+    counts as inside when σ < −``tolerance`` (metres; default 0.01 mm, so particles the contact
+    response left exactly on the surface, up to rounding, do not count).
     Returns {"inside_share" (0…1), "mean_depth_mm" (over penetrating vertices, 0 if none),
     "max_depth_mm"}; the depth of a vertex is −min over colliders of σ when negative.
     """
@@ -99,11 +101,11 @@ def penetration(x: torch.Tensor, colliders: Sequence, world_poses: Sequence[Opti
         return {"inside_share": 0.0, "mean_depth_mm": 0.0, "max_depth_mm": 0.0}
     sd = collider_distances(x, colliders, world_poses).min(0).values[..., pinned:]
     depth = (-sd).clamp_min(0) * MM
-    inside = sd < 0
+    inside = sd < -tolerance
     n = int(inside.sum())
     return {"inside_share": float(inside.double().mean()),
             "mean_depth_mm": float(depth[inside].mean()) if n else 0.0,
-            "max_depth_mm": float(depth.max())}
+            "max_depth_mm": float(depth[inside].max()) if n else 0.0}
 
 
 def temporal_jitter(x: torch.Tensor) -> float:

@@ -1,6 +1,5 @@
 """Guide-strand baselines: guide selection, skinning, metrics, upsampler training and DDP."""
-import math
-
+import numpy as np
 import pytest
 import torch
 
@@ -244,3 +243,24 @@ def test_ddp_two_processes_match_one(tiny_data, tmp_path):
     m2, _ = load_checkpoint(str(tmp_path / "two.pt"))
     for p, q in zip(m1.parameters(), m2.parameters()):
         assert torch.allclose(p, q, rtol=1e-8, atol=1e-12)
+
+
+def test_evaluate_baselines_smoke(tmp_path):
+    spec = importlib.util.spec_from_file_location("evaluate_baselines", _ROOT / "scripts" / "evaluate_baselines.py")
+    ev = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ev)
+    res = ev.main(["--strands", "96", "--particles", "8", "--guide-counts", "8,32,4096", "--train-sequences", "2",
+                   "--train-frames", "6", "--frames", "6", "--steps", "5", "--batch", "128", "--threads", "0",
+                   "--work", str(tmp_path / "w"), "--docs", str(tmp_path / "docs")])
+    assert res["guide_counts"] == [8, 32, 96]  # capped at the strand count
+    md = (tmp_path / "docs" / "baselines.md").read_text()
+    assert "| 32 | skinning |" in md and "| 96 | upsampler |" in md
+    for png in ("error_vs_guides", "penetration_vs_guides", "time_vs_error"):
+        size = (tmp_path / "docs" / "baselines" / f"{png}.png").stat().st_size
+        assert 0 < size < 300_000
+    # every strand a guide: skinning is exact; more guides, smaller error
+    full = [r for r in res["rows"] if r["guides"] == 96 and r["method"] == "skinning"]
+    assert max(r["max_mm"] for r in full) < 1e-3
+    err = {g: np.mean([r["mean_mm"] for r in res["rows"] if r["guides"] == g and r["method"] == "skinning"])
+           for g in (8, 32)}
+    assert err[32] < err[8]
