@@ -82,7 +82,7 @@ class SequenceRenderer:
         head_vertices, head_faces: (V, 3) m and (F, 3) int, the head mesh in the head frame
             (moved by each frame's pose), or None.
         head_radius: draw a sphere of this radius (m) when there is no mesh.
-        view: "front" (look along −z), "side" (along +x) or "back".
+        view: "front" (look along −z), "side" (along +x) or "back" (along +z, mirrored).
         extent: ((xmin, xmax), (ymin, ymax)) metres of the picture; default from the first frame.
         size: inches (square); dpi: pixels per inch (size·dpi pixels, rounded to even).
         max_strands: draw at most this many strands (evenly picked).
@@ -162,7 +162,8 @@ class SequenceRenderer:
         for idx, z in ((behind, 0), (front, 2)):
             if len(idx):
                 ax.add_collection(LineCollection(x[idx][:, :, [a, b]], colors=self.colour[idx], linewidths=0.6, zorder=z))
-        ax.set_xlim(*self.extent[0])
+        lo_h, hi_h = self.extent[0]
+        ax.set_xlim(*((hi_h, lo_h) if self.view == "back" else (lo_h, hi_h)))  # from behind: +x to the left
         ax.set_ylim(*self.extent[1])
         ax.set_aspect("equal")
         self._draw_shapes(shapes, a, b)
