@@ -11,7 +11,6 @@ File layout (lengths in metres, float32; ``F`` frames, ``S`` strands, ``N`` part
 """
 from __future__ import annotations
 
-import math
 import os
 from typing import Dict, List, Optional, Sequence
 

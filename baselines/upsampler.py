@@ -60,16 +60,18 @@ class GuideUpsampler(nn.Module):
         self.register_buffer("residual_mask", mask)
 
     def strands_forward(self, guides_k: torch.Tensor, strands: torch.Tensor, rotation: torch.Tensor,
-                        translation: torch.Tensor) -> torch.Tensor:
+                        translation: torch.Tensor, skinned: Optional[torch.Tensor] = None) -> torch.Tensor:
         """Predict a batch of strands from their own guides.
 
         guides_k: (B, K, N, 3) metres, positions of guides ``skin.guide_index[strands]``;
-        strands: (B,) long; rotation (B, 3, 3), translation (B, 3) m: head pose of each item.
+        strands: (B,) long; rotation (B, 3, 3), translation (B, 3) m: head pose of each item;
+        skinned: (B, N, 3) the skinning result of these items when already computed.
         Returns (B, N, 3) metres.
         """
         r = rotation.to(guides_k)
         t = translation.to(guides_k)
-        skinned = self.skin.gathered(guides_k, strands, r)  # (B, N, 3)
+        if skinned is None:
+            skinned = self.skin.gathered(guides_k, strands, r)  # (B, N, 3)
         local_g = (guides_k - t[:, None, None, :]) @ r[:, None]  # rows Rᵀ(x − T)
         local_s = (skinned - t[:, None, :]) @ r
         rg = self.skin.rest_guides.to(guides_k)[self.skin.guide_index[strands]]
@@ -89,7 +91,8 @@ class GuideUpsampler(nn.Module):
         strands = torch.arange(s, device=g.device).repeat(f)
         rot = rotation.reshape(-1, 3, 3).repeat_interleave(s, 0)
         tr = translation.reshape(-1, 3).repeat_interleave(s, 0)
-        return self.strands_forward(gk, strands, rot, tr).reshape(lead + (s, self.n, 3))
+        skinned = self.skin(g, rotation.reshape(-1, 3, 3)).reshape(f * s, self.n, 3)  # frames once per guide
+        return self.strands_forward(gk, strands, rot, tr, skinned).reshape(lead + (s, self.n, 3))
 
 
 def save_checkpoint(path: str, model: GuideUpsampler, optimizer: Optional[torch.optim.Optimizer] = None,
