@@ -1,7 +1,8 @@
 """Train the guide upsampler (baselines/upsampler.py) on a dataset from baselines/data.py.
 
     python scripts/train_upsampler.py --data out/baselines/data.h5 --guides 128 --out out/up128.pt
-    torchrun --standalone --nproc_per_node=2 scripts/train_upsampler.py ...   # DDP (gloo on CPU)
+    torchrun --nnodes=1 --nproc_per_node=2 --master_addr=127.0.0.1 --master_port=29512 \
+        scripts/train_upsampler.py ...        # DDP: gloo on CPU (loopback only), nccl on GPUs
 
 Samples are (frame, strand) pairs. Their order is a fixed global permutation per epoch (from
 ``--seed``), cut into global batches of ``--batch``; under DDP each rank takes its contiguous
