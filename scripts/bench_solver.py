@@ -109,6 +109,7 @@ def machine_info(device: str) -> dict:
         "torch": torch.__version__,
         "cpu": cpu,
         "gpu": torch.cuda.get_device_name() if device == "cuda" else None,
+        "load_avg_1min_at_start": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None,
     }
 
 
@@ -187,6 +188,10 @@ def write_markdown(records: list[dict], path: Path, args) -> None:
         "scipy.linalg.solveh_banded looped over strands (only small S). Blank: not run.",
         "",
     ]
+    if hasattr(os, "getloadavg"):
+        lines += [f"1-minute load average: {records[0]['load_avg_1min_at_start'] if records else '?'} at the start, "
+                  f"{os.getloadavg()[0]:.2f} at the end of the run (other processes' load inflates the timings, "
+                  "the multi-threaded plain and dense torch paths most).", ""]
     if args.note:
         lines += [args.note, ""]
     by_key: dict = {}
@@ -219,10 +224,13 @@ def main(argv=None) -> None:
     p.add_argument("--scipy-max-strands", type=int, default=10000)
     p.add_argument("--quick", action="store_true", help="S ∈ {1000, 10000}, N ∈ {16, 32}, 3 repeats")
     p.add_argument("--out", type=Path, default=REPO / "docs" / "benchmarks")
+    p.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: torch's default)")
     p.add_argument("--note", default="", help="a sentence added to solver.md (e.g. machine load)")
     args = p.parse_args(argv)
     if args.quick:
         args.strands, args.particles, args.repeats = [1000, 10000], [16, 32], 3
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
     if args.device == "cuda" and not torch.cuda.is_available():
         p.error("--device cuda: no CUDA device available")
     records = run(args)
