@@ -228,21 +228,22 @@ def write_markdown(records: list[dict], path: Path, args) -> None:
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
-    p.add_argument("--strands", type=int, nargs="+", default=[1000, 10000, 100000])
-    p.add_argument("--particles", type=int, nargs="+", default=[16, 32, 64])
+    p.add_argument("--strands", type=int, nargs="+", help="default 1000 10000 100000 (--quick: 1000 10000)")
+    p.add_argument("--particles", type=int, nargs="+", help="default 16 32 64 (--quick: 16 32)")
     p.add_argument("--dtypes", nargs="+", default=["float32", "float64"], choices=tuple(DTYPES))
     p.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
-    p.add_argument("--repeats", type=int, default=25, help="timed calls at most (median reported)")
+    p.add_argument("--repeats", type=int, help="timed calls at most, median reported (default 25; --quick: 3)")
     p.add_argument("--time-cap", type=float, default=1.0, help="seconds per measurement, roughly (at least one timed call)")
     p.add_argument("--dense-max-gb", type=float, default=2.0)
     p.add_argument("--scipy-max-strands", type=int, default=10000)
-    p.add_argument("--quick", action="store_true", help="S ∈ {1000, 10000}, N ∈ {16, 32}, 3 repeats")
+    p.add_argument("--quick", action="store_true", help="smaller defaults: S ∈ {1000, 10000}, N ∈ {16, 32}, 3 repeats")
     p.add_argument("--out", type=Path, default=REPO / "docs" / "benchmarks")
     p.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: torch's default)")
     p.add_argument("--note", default="", help="a sentence added to solver.md (e.g. machine load)")
     args = p.parse_args(argv)
-    if args.quick:
-        args.strands, args.particles, args.repeats = [1000, 10000], [16, 32], 3
+    args.strands = args.strands or ([1000, 10000] if args.quick else [1000, 10000, 100000])
+    args.particles = args.particles or ([16, 32] if args.quick else [16, 32, 64])
+    args.repeats = args.repeats or (3 if args.quick else 25)
     if args.threads > 0:
         torch.set_num_threads(args.threads)
     if args.device == "cuda" and not torch.cuda.is_available():
