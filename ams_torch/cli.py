@@ -6,7 +6,8 @@
           ``rotations`` (F, 3, 3), ``translations`` (F, 3) m head poses; ``rest_positions``
           (S, N, 3); ``collider_rotations``/``collider_translations`` (F, C, 3, 3)/(F, C, 3) when
           the scene has [[colliders]]; attrs ``scene``, ``params``, ``ms_per_frame`` (JSON), ``dt`` s) and
-          DIR/video.mp4; prints ms/frame per stage.
+          DIR/final.npz (the last frame: positions, velocities, rest_positions, head pose),
+          DIR/final.png (a picture of it) and DIR/video.mp4; prints ms/frame per stage.
     ams-torch render FILE.h5 [--out video.mp4|frame.png] [--view front|side|back] [--every k]
     ams-torch info
 """
@@ -21,7 +22,7 @@ from typing import Optional
 
 import numpy as np
 
-__all__ = ["main", "write_sequence", "read_sequence"]
+__all__ = ["main", "write_sequence", "write_final", "read_sequence"]
 
 
 def write_sequence(path: str, result: dict, scene: dict, params, rest: np.ndarray) -> str:
@@ -43,6 +44,21 @@ def write_sequence(path: str, result: dict, scene: dict, params, rest: np.ndarra
         f.attrs["ms_per_frame"] = json.dumps(result["ms_per_frame"])
         f.attrs["dt"] = float(params.dt)
         f.attrs["units"] = "metres, seconds; world frame, +y up"
+    os.replace(tmp, path)
+    return path
+
+
+def write_final(path: str, result: dict, rest: np.ndarray) -> str:
+    """Write the last frame of a run to ``.npz`` atomically: ``positions`` and ``velocities``
+    (S, N, 3) float32 (m, m/s, world), ``rest_positions`` (S, N, 3) m head frame, ``rotation``
+    (3, 3) and ``translation`` (3,) m the head pose, ``frame`` and ``time`` (s)."""
+    state = result["state"]
+    x, v = state.x.detach().cpu().float().numpy(), state.v.detach().cpu().float().numpy()
+    tmp = f"{path}.tmp{os.getpid()}.npz"
+    np.savez(tmp, positions=x, velocities=v, rest_positions=np.asarray(rest, dtype=np.float32),
+             rotation=result["rotations"][-1].astype(np.float32),
+             translation=result["translations"][-1].astype(np.float32),
+             frame=np.int64(state.frame), time=np.float64(state.time))
     os.replace(tmp, path)
     return path
 
@@ -128,8 +144,15 @@ def _cmd_simulate(args) -> int:
     h5 = write_sequence(os.path.join(args.out, "sequence.h5"), result, scene, run.sim.params, run.rest)
     print("ms/frame: " + ", ".join(f"{k} {v:.1f}" for k, v in result["ms_per_frame"].items()))
     print(f"wrote {h5}")
+    final = write_final(os.path.join(args.out, "final.npz"), result, run.rest)
+    print(f"wrote {final}")
+    seq = read_sequence(h5)
+    png = _render({**seq, "positions": seq["positions"][-1:],
+                   **{k: seq[k][-1:] for k in ("rotations", "translations", "collider_rotations",
+                                               "collider_translations") if k in seq}},
+                  scene, os.path.join(args.out, "final.png"))
+    print(f"wrote {png}")
     if not args.no_video:
-        seq = read_sequence(h5)
         video = _render(seq, scene, os.path.join(args.out, "video.mp4"), progress=not args.quiet)
         print(f"wrote {video}")
     return 0

@@ -45,6 +45,12 @@ def test_simulate_writes_hdf5_and_video(tmp_path, capsys):
         assert json.loads(f.attrs["params"])["num_pinned"] == 2
         assert np.isfinite(f["positions"][()]).all()
     assert not [p for p in os.listdir(out) if ".tmp" in p]  # atomic writes leave no temporaries
+    final = np.load(out / "final.npz")
+    with h5py.File(h5, "r") as f:
+        assert np.array_equal(final["positions"], f["positions"][-1])  # the last frame, as simulated
+        assert np.array_equal(final["rest_positions"], f["rest_positions"][()])
+    assert final["velocities"].shape == (12, 8, 3) and int(final["frame"]) == 4
+    assert iio.imread(out / "final.png").ndim == 3
     frames = iio.imread(out / "video.mp4")
     assert frames.shape[0] == 4 and frames.shape[-1] == 3
     # render again from the file, every other frame, and to a PNG
