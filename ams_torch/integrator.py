@@ -9,6 +9,13 @@ assembles and solves the linearised backward-Euler system in its symmetric form
 
 then the positions are advanced; after the substeps come inextensibility and the optional
 stages (hair–hair, collisions) in the order of SPEC §4.
+
+Profiler labels (``torch.profiler.record_function``; no effect on the results) mark the pieces
+of a frame: ``ams_torch.springs`` (edge/bend/torsion forces and Jacobian blocks),
+``ams_torch.biphasic`` (integrity and angular couplings to the ghosts), ``ams_torch.assembly``
+(the whole :func:`assemble_system`, the two above included), ``ams_torch.solve`` (the banded
+solve) and ``ams_torch.inextensibility`` (follow-the-leader). :func:`ams_torch.scene.simulate`
+adds ``ams_torch.step``, ``ams_torch.hair_hair`` and ``ams_torch.collisions``.
 """
 from __future__ import annotations
 
@@ -16,6 +23,7 @@ from typing import Callable, Optional, Sequence, Union
 
 import torch
 import torch.nn.functional as F
+from torch.profiler import record_function
 
 from . import forces
 from .constraints import follow_the_leader
@@ -75,6 +83,13 @@ def assemble_system(model: Model, params: Params, x: torch.Tensor, v: torch.Tens
         blocks: (..., S, N, 4, 3, 3) lower band, ``blocks[..., i, k] = A[i, i-k]``, kg.
         rhs: (..., S, N, 3), kg·m/s.
     """
+    with record_function("ams_torch.assembly"):
+        return _assemble_system(model, params, x, v, ghost, ghost_velocity, pin_velocity, h, external_force,
+                                ghost_offset)
+
+
+def _assemble_system(model: Model, params: Params, x, v, ghost, ghost_velocity, pin_velocity, h: float,
+                     external_force=None, ghost_offset=None):
     m = model.particle_mass
     eye = torch.eye(3, dtype=x.dtype, device=x.device)
     gamma = params.drag * m if not _is_zero(params.drag) else None
@@ -86,15 +101,25 @@ def assemble_system(model: Model, params: Params, x: torch.Tensor, v: torch.Tens
     diag = m_eff[..., None, None] * eye
     offdiag = []
     scales = (1.0, params.bend_scale, params.torsion_scale)
-    for k in (1, 2, 3):
-        kappa = params.stretch_stiffness * scales[k - 1]
-        f, stiff = forces.spring_forces(x, model.rest_lengths[k - 1], kappa, k)
-        force = force + f
-        hk = (h * h) * stiff  # (..., S, N-k, 3, 3)
-        diag = diag + _pad_n(hk, 0, k) + _pad_n(hk, k, 0)
-        offdiag.append(_pad_n(-hk, k, 0))
+    with record_function("ams_torch.springs"):
+        for k in (1, 2, 3):
+            kappa = params.stretch_stiffness * scales[k - 1]
+            f, stiff = forces.spring_forces(x, model.rest_lengths[k - 1], kappa, k)
+            force = force + f
+            hk = (h * h) * stiff  # (..., S, N-k, 3, 3)
+            diag = diag + _pad_n(hk, 0, k) + _pad_n(hk, k, 0)
+            offdiag.append(_pad_n(-hk, k, 0))
     rhs = m[..., None] * v
+    with record_function("ams_torch.biphasic"):
+        force, diag, offdiag, rhs = _biphasic_terms(model, params, x, v, ghost, ghost_velocity, h, ghost_offset,
+                                                    eye, force, diag, offdiag, rhs)
+    return _finish_system(model, x, pin_velocity, h, eye, force, diag, offdiag, rhs)
 
+
+def _biphasic_terms(model: Model, params: Params, x, v, ghost, ghost_velocity, h: float, ghost_offset, eye,
+                    force, diag, offdiag, rhs):
+    """Add the integrity and angular couplings (SPEC §3, §7) to the force, the block diagonal,
+    the first sub-diagonal and the right-hand side; returns them (unchanged when κ_I = κ_α = 0)."""
     if not _is_zero(params.integrity_stiffness) and params.integrity_model == "nonhookean":
         kappa_i = torch.as_tensor(params.integrity_stiffness, dtype=x.dtype, device=x.device)
         k3 = kappa_i[..., None] if kappa_i.dim() > 0 else kappa_i
@@ -128,6 +153,12 @@ def assemble_system(model: Model, params: Params, x: torch.Tensor, v: torch.Tens
                 rel = v[..., :-1, :] + dw
                 diag = diag + _pad_n(ht, 1, 0)
                 rhs = rhs + F.pad(torch.einsum("...ij,...j->...i", ht, rel), (0, 0, 1, 0))
+    return force, diag, offdiag, rhs
+
+
+def _finish_system(model: Model, x, pin_velocity, h: float, eye, force, diag, offdiag, rhs):
+    """Add the forces to the right-hand side, stack the band and impose the pinned rows."""
+    m = model.particle_mass
     rhs = rhs + h * force
     blocks = torch.stack([diag] + [o.expand_as(diag) for o in offdiag], -3)
 
@@ -186,7 +217,8 @@ def substep(model: Model, params: Params, x, v, ghost, ghost_velocity, pin_veloc
     """One linearised backward-Euler substep: returns the new velocities (..., S, N, 3) m/s."""
     blocks, rhs = assemble_system(model, params, x, v, ghost, ghost_velocity, pin_velocity, h, external_force,
                                   ghost_offset)
-    return solve_banded(blocks, rhs)
+    with record_function("ams_torch.solve"):
+        return solve_banded(blocks, rhs)
 
 
 def resolve_pose(prev: Pose, pose: Optional[Pose], dt: float, device, dtype) -> tuple:
@@ -280,8 +312,9 @@ def step(model: Model, params: Params, state: State, pose: Optional[Pose] = None
         if nonhookean:
             offset = pb.rotate(offset_local.expand(x.shape))
     if params.inextensibility:
-        fallback = forces.safe_normalize(pose1.rotate(rest[..., 1:, :] - rest[..., :-1, :]))[0]
-        x, v = follow_the_leader(x, v, model.edge_rest_length, model.pinned, dt, params.ftl_damping, fallback)
+        with record_function("ams_torch.inextensibility"):
+            fallback = forces.safe_normalize(pose1.rotate(rest[..., 1:, :] - rest[..., :-1, :]))[0]
+            x, v = follow_the_leader(x, v, model.edge_rest_length, model.pinned, dt, params.ftl_damping, fallback)
     for stage in stages:
         x, v = stage(x, v, pose1, dt, state)
     v = torch.where(pinned, pose1.velocity_at(x), v)
