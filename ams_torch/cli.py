@@ -9,6 +9,9 @@
           DIR/final.npz (the last frame: positions, velocities, rest_positions, head pose),
           DIR/final.png (a picture of it) and DIR/video.mp4; prints ms/frame per stage.
     ams-torch render FILE.h5 [--out video.mp4|frame.png] [--view front|side|back] [--every k]
+    ams-torch generate RECIPE.toml --out DIR [--shard i/n | --shards n] [--backend local|ray]
+        → DIR/<name>-shard-<i>-of-<n>.h5 (layout: docs/dataset_format.md); resumes a killed run.
+    ams-torch validate DIR|FILE   (exit status 0 only when every file is sound)
     ams-torch info
 """
 from __future__ import annotations
@@ -198,6 +201,60 @@ def _cmd_info(args) -> int:
     return 0
 
 
+def _cmd_generate(args) -> int:
+    from .datagen import generate, generate_ray, parse_shard
+    from .recipe import load_recipe
+
+    overrides = {"sequences": args.sequences} if args.sequences is not None else None
+    recipe = load_recipe(args.recipe, overrides)
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    t0 = time.perf_counter()
+    print(f"recipe {recipe.name}: {recipe.num_sequences} sequences x {recipe.frames} frames in "
+          f"{recipe.num_groups} batch group(s) of up to {recipe.batch}; output {args.out}")
+    if args.backend == "ray":
+        if args.shard:
+            print("error: --shard selects one shard for the local backend; with --backend ray use --shards N",
+                  file=sys.stderr)
+            return 2
+        paths = generate_ray(recipe, args.out, args.shards or 1, address=args.ray_address, device=args.device,
+                             cpus_per_task=args.cpus_per_task, progress=not args.quiet)
+    else:
+        if args.shard:
+            i, n = parse_shard(args.shard)
+            shards = [i]
+        else:
+            n = args.shards or 1
+            shards = None
+        paths = generate(recipe, args.out, shards=shards, num_shards=n, device=args.device, progress=not args.quiet)
+    for p in paths:
+        print(f"wrote {p}")
+    print(f"done in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _cmd_validate(args) -> int:
+    from .data import validate
+
+    problems, notes = validate(args.path, progress=not args.quiet)
+    bad = 0
+    for path, found in problems.items():
+        if found:
+            bad += 1
+            print(f"FAIL {path}")
+            for p in found:
+                print(f"  - {p}")
+        elif not args.quiet:
+            print(f"ok   {path}")
+    errors = [n for n in notes if n.startswith("error:")]
+    for n in notes:
+        print(n)
+    print(f"{len(problems) - bad} of {len(problems)} file(s) sound")
+    return 0 if bad == 0 and not errors else 1
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="ams-torch", description="Dense hair simulation with the AMS model.")
     sub = ap.add_subparsers(dest="command", required=True)
@@ -218,6 +275,23 @@ def main(argv=None) -> int:
     rp.add_argument("--every", type=int)
     rp.add_argument("--quiet", action="store_true")
     rp.set_defaults(fn=_cmd_render)
+    gp = sub.add_parser("generate", help="simulate a dataset recipe (TOML) into sharded HDF5 files")
+    gp.add_argument("recipe")
+    gp.add_argument("--out", required=True, help="output folder (one HDF5 file per shard)")
+    gp.add_argument("--shard", help="i/n: generate only shard i of n (local backend)")
+    gp.add_argument("--shards", type=int, help="number of shards (default 1; with --backend ray, one task each)")
+    gp.add_argument("--sequences", type=int, help="override the recipe's number of sequences")
+    gp.add_argument("--backend", choices=("local", "ray"), default="local")
+    gp.add_argument("--ray-address", help="join this Ray cluster (default: start a private one on 127.0.0.1)")
+    gp.add_argument("--cpus-per-task", type=float, default=1.0, help="Ray CPUs per shard task")
+    gp.add_argument("--device", help="cpu or cuda (default cpu; Ray tasks take a GPU each when there are GPUs)")
+    gp.add_argument("--threads", type=int, help="torch CPU threads")
+    gp.add_argument("--quiet", action="store_true", help="no progress bars")
+    gp.set_defaults(fn=_cmd_generate)
+    vp = sub.add_parser("validate", help="check dataset files (structure, checksums, NaN, frame counts)")
+    vp.add_argument("path", help="a dataset folder or file")
+    vp.add_argument("--quiet", action="store_true")
+    vp.set_defaults(fn=_cmd_validate)
     ip = sub.add_parser("info", help="versions, devices, native solver status")
     ip.set_defaults(fn=_cmd_info)
     args = ap.parse_args(argv)
@@ -225,7 +299,7 @@ def main(argv=None) -> int:
 
     try:
         return args.fn(args)
-    except (SceneError, FileNotFoundError) as err:
+    except (SceneError, FileNotFoundError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
 

@@ -20,7 +20,7 @@ from typing import Any, Dict, List, Optional, Sequence, Union
 import numpy as np
 import torch
 
-__all__ = ["Groom", "resample_strands", "strand_lengths", "triangle_frames"]
+__all__ = ["Groom", "resample_strands", "strand_lengths", "triangle_frames", "fps_order"]
 
 ArrayLike = Union[np.ndarray, torch.Tensor]
 
@@ -360,3 +360,26 @@ class Groom:
         name = self.metadata.get("preset") or self.metadata.get("source") or ""
         extra = f", {name}" if name else ""
         return f"Groom({shape}, binding={'yes' if self.has_binding else 'no'}{extra})"
+
+
+def fps_order(roots: torch.Tensor, count: int, start: int | None = None) -> torch.Tensor:
+    """Greedy farthest-point order on root positions.
+
+    roots: (S, 3) metres. Returns (count,) long indices; the first k entries are the FPS choice
+    of k guides for every k ≤ count. Starts at ``start`` or, by default, the root nearest the
+    centroid (deterministic; ties broken by the lowest index).
+    """
+    roots = torch.as_tensor(roots).detach().to(torch.float64)
+    s = roots.shape[0]
+    if not 1 <= count <= s:
+        raise ValueError(f"guide count {count} must be in [1, {s}] (the number of strands)")
+    if start is None:
+        start = int((roots - roots.mean(0)).norm(dim=-1).argmin())
+    idx = torch.empty(count, dtype=torch.long)
+    idx[0] = start
+    dist = (roots - roots[start]).square().sum(-1)
+    for k in range(1, count):
+        nxt = int(dist.argmax())
+        idx[k] = nxt
+        dist = torch.minimum(dist, (roots - roots[nxt]).square().sum(-1))
+    return idx

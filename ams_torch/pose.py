@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Optional
+from typing import Optional, Sequence
 
 import torch
 
@@ -69,6 +69,19 @@ class Pose:
         as_t = lambda a: None if a is None else torch.as_tensor(a, device=device, dtype=dtype)  # noqa: E731
         return Pose(axis_angle_to_matrix(as_t(rotvec)), as_t(translation), as_t(linear_velocity),
                     as_t(angular_velocity))
+
+    @staticmethod
+    def stack(poses: Sequence["Pose"]) -> "Pose":
+        """Stack B poses (same batch shape each) into one pose with a new leading dim B, e.g.
+        B motions of one groom simulated as a scene batch. Velocities are kept only if every
+        pose has them."""
+        poses = list(poses)
+        if not poses:
+            raise ValueError("Pose.stack needs at least one pose")
+        vel = all(p.has_velocity for p in poses)
+        st = lambda name: torch.stack([getattr(p, name) for p in poses])  # noqa: E731
+        return Pose(st("rotation"), st("translation"), st("linear_velocity") if vel else None,
+                    st("angular_velocity") if vel else None)
 
     def to(self, device=None, dtype=None) -> "Pose":
         f = lambda t: None if t is None else t.to(device=device, dtype=dtype)  # noqa: E731

@@ -327,8 +327,9 @@ def _head_mesh(head: dict):
     return load_mesh(head["mesh"])
 
 
-def _make_groom(scene: dict, mesh) -> np.ndarray:
-    """Rest positions (S, N, 3) float32 m of the scene's groom (scaled strand count)."""
+def _make_groom(scene: dict, mesh) -> tuple:
+    """The scene's groom (scaled strand count): (rest positions (S, N, 3) m as numpy, the
+    :class:`~ams_torch.Groom` with its root binding for presets and files, or None)."""
     g = scene["groom"]
     scale = float(scene["scale"])
     strands = max(1, int(round(g.get("strands", 1000) * scale)))
@@ -338,37 +339,38 @@ def _make_groom(scene: dict, mesh) -> np.ndarray:
 
         groom = preset(g["preset"], strands=strands, particles=particles, seed=g.get("seed", 0), mesh=mesh,
                        **g.get("growth", {}))
-        return groom.rest_positions.numpy()
+        return groom.rest_positions.numpy(), groom
     if "file" in g:
         from .io import read_groom
 
         groom = read_groom(g["file"], resample=particles or 32)
-        rest = groom.rest_positions.numpy()
         if scale != 1.0:
-            rest = rest[np.linspace(0, len(rest) - 1, strands).astype(int)]
-        return rest
+            groom = groom.subset(np.linspace(0, groom.num_strands - 1, strands).astype(int))
+        return groom.rest_positions.numpy(), groom
     n = particles or 32
     length = g.get("length", 0.25)
     if g["kind"] == "sphere":
         from .testing import sphere_groom
 
-        return sphere_groom(strands, n, radius=g.get("radius", scene["head"]["radius"]), length=length).numpy()
+        return sphere_groom(strands, n, radius=g.get("radius", scene["head"]["radius"]), length=length).numpy(), None
     if g["kind"] == "wisp":
         from .testing import wisp
 
-        return np.asarray(wisp(strands, n, length=length, spread=g.get("spread", 0.01)))
+        return np.asarray(wisp(strands, n, length=length, spread=g.get("spread", 0.01))), None
     # a single horizontal strand (or several side by side, 1 cm apart), rooted at the origin
     t = np.linspace(0.0, length, n)
     rest = np.zeros((strands, n, 3))
     rest[:, :, 0] = t
     rest[:, :, 2] = (np.arange(strands) * 0.01)[:, None]
-    return rest
+    return rest, None
 
 
 @dataclass
 class BuiltScene:
     """What :func:`build` makes. ``sim`` is the :class:`~ams_torch.Simulator`; ``motion`` the head
-    motion; ``wind`` (or None); ``collider_motions`` one entry per collider (Motion or None)."""
+    motion; ``wind`` (or None); ``collider_motions`` one entry per collider (Motion or None);
+    ``rest`` the simulated rest shape (S, N, 3) m; ``groom`` the :class:`~ams_torch.Groom` it came
+    from (root binding) for preset and file grooms, else None."""
 
     scene: dict
     sim: Any
@@ -378,6 +380,7 @@ class BuiltScene:
     head_mesh: Any
     rest: np.ndarray
     build_seconds: Dict[str, float] = field(default_factory=dict)
+    groom: Any = None
 
 
 def _ms_variant(params: Params, rest: np.ndarray, offset) -> tuple:
@@ -398,11 +401,12 @@ def build(scene: dict, device=None, dtype=torch.float32) -> BuiltScene:
     times = {}
     t0 = time.perf_counter()
     mesh = _head_mesh(scene["head"])
-    rest = _make_groom(scene, mesh)
+    rest, groom = _make_groom(scene, mesh)
     times["groom"] = time.perf_counter() - t0
     params = make_params(scene)
     if scene["groom"]["compare_ms"]:
         params, rest = _ms_variant(params, rest, scene["groom"]["compare_offset"])
+        groom = None  # the doubled groom has no single root binding
     stages = scene["stages"]
     cols, col_motions = [], []
     if stages["collisions"]:
@@ -428,7 +432,7 @@ def build(scene: dict, device=None, dtype=torch.float32) -> BuiltScene:
                 c.sdf  # build (or load) the SDF now, not inside the first frame
     times["simulator"] = time.perf_counter() - t1
     wind = Wind(**scene["wind"]) if "wind" in scene else None
-    return BuiltScene(scene, sim, motion, wind, col_motions, mesh, rest, times)
+    return BuiltScene(scene, sim, motion, wind, col_motions, mesh, rest, times, groom)
 
 
 def trim_strands(rest: torch.Tensor, x: torch.Tensor, v: torch.Tensor, pose, point, normal,

@@ -3,30 +3,9 @@ from __future__ import annotations
 
 import torch
 
+from ams_torch.groom import fps_order
+
 __all__ = ["select_guides", "fps_order"]
-
-
-def fps_order(roots: torch.Tensor, count: int, start: int | None = None) -> torch.Tensor:
-    """Greedy farthest-point order on root positions.
-
-    roots: (S, 3) metres. Returns (count,) long indices; the first k entries are the FPS choice
-    of k guides for every k ≤ count. Starts at ``start`` or, by default, the root nearest the
-    centroid (deterministic; ties broken by the lowest index).
-    """
-    roots = torch.as_tensor(roots).detach().to(torch.float64)
-    s = roots.shape[0]
-    if not 1 <= count <= s:
-        raise ValueError(f"guide count {count} must be in [1, {s}] (the number of strands)")
-    if start is None:
-        start = int((roots - roots.mean(0)).norm(dim=-1).argmin())
-    idx = torch.empty(count, dtype=torch.long)
-    idx[0] = start
-    dist = (roots - roots[start]).square().sum(-1)
-    for k in range(1, count):
-        nxt = int(dist.argmax())
-        idx[k] = nxt
-        dist = torch.minimum(dist, (roots - roots[nxt]).square().sum(-1))
-    return idx
 
 
 def select_guides(roots: torch.Tensor, count: int, method: str = "fps", seed: int = 0,
