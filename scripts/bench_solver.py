@@ -28,8 +28,6 @@ import argparse
 import importlib.util
 import json
 import os
-import platform
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -41,6 +39,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from ams_torch import _native, ops  # noqa: E402
+from ams_torch._bench import machine_info, median_ms  # noqa: E402
 from ams_torch.solver import banded_to_dense, solve_banded_plain  # noqa: E402
 
 METHODS = ("native", "plain", "dense", "scipy")
@@ -52,31 +51,6 @@ def _load_factory():
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod.strand_system
-
-
-def _sync(device: str) -> None:
-    if device == "cuda":
-        torch.cuda.synchronize()
-
-
-def _time(fn, device: str, repeats: int, time_cap: float, min_repeats: int = 3) -> tuple[float, int]:
-    """Median wall time of fn() in ms, after one warm-up call; (median_ms, timed calls).
-
-    Between ``min_repeats`` and ``repeats`` timed calls, as many as fit in ``time_cap`` seconds."""
-    _sync(device)
-    t0 = time.perf_counter()
-    fn()
-    _sync(device)
-    warm = time.perf_counter() - t0
-    n = max(min(min_repeats, repeats), min(repeats, int(time_cap / max(warm, 1e-9))))
-    times = []
-    for _ in range(n):
-        _sync(device)
-        t0 = time.perf_counter()
-        fn()
-        _sync(device)
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times) * 1e3, n
 
 
 def scipy_banded_lower(blocks: torch.Tensor) -> np.ndarray:
@@ -94,23 +68,6 @@ def scipy_banded_lower(blocks: torch.Tensor) -> np.ndarray:
                     continue
                 ab[:, 3 * k + r - c, cols + c] = b[:, k:, k, r, c]
     return ab
-
-
-def machine_info(device: str) -> dict:
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    return {
-        "threads": torch.get_num_threads(),
-        "cpu_cores": os.cpu_count(),
-        "torch": torch.__version__,
-        "cpu": cpu,
-        "gpu": torch.cuda.get_device_name() if device == "cuda" else None,
-        "load_avg_1min_at_start": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None,
-    }
 
 
 def run(args) -> list[dict]:
@@ -140,10 +97,10 @@ def run(args) -> list[dict]:
 
                 if "native" in args.methods:
                     x_native = ops.solve_banded(blocks, rhs)
-                    record("native", *_time(lambda: ops.solve_banded(blocks, rhs), device, args.repeats, args.time_cap))
+                    record("native", *median_ms(lambda: ops.solve_banded(blocks, rhs), device, args.repeats, args.time_cap))
                 if "plain" in args.methods:
                     x_plain = solve_banded_plain(blocks, rhs)
-                    record("plain", *_time(lambda: solve_banded_plain(blocks, rhs), device, args.repeats, args.time_cap))
+                    record("plain", *median_ms(lambda: solve_banded_plain(blocks, rhs), device, args.repeats, args.time_cap))
                     if "native" in args.methods:
                         rel = ((x_native - x_plain).double().norm() / x_plain.double().norm()).item()
                         tol = 1e-4 if dtype == torch.float32 else 1e-10
@@ -153,7 +110,7 @@ def run(args) -> list[dict]:
                 if "dense" in args.methods and dense_gb <= args.dense_max_gb:
                     a = banded_to_dense(blocks)
                     r = rhs.reshape(s, 3 * n)
-                    record("dense", *_time(lambda: torch.linalg.solve(a, r), device, args.repeats, args.time_cap))
+                    record("dense", *median_ms(lambda: torch.linalg.solve(a, r), device, args.repeats, args.time_cap))
                     del a
                 if "scipy" in args.methods and device == "cpu" and s <= args.scipy_max_strands:
                     ab = scipy_banded_lower(blocks)
@@ -163,7 +120,7 @@ def run(args) -> list[dict]:
                         for i in range(s):
                             scipy.linalg.solveh_banded(ab[i], rn[i], lower=True, check_finite=False)
 
-                    record("scipy", *_time(scipy_loop, device, args.repeats, args.time_cap))
+                    record("scipy", *median_ms(scipy_loop, device, args.repeats, args.time_cap))
                     del ab
                 line = "  ".join(f"{m}={results[m]:9.2f}ms" for m in METHODS if m in results)
                 print(f"{dtype_name} S={s:6d} N={n:3d}  {line}", flush=True)

@@ -1,0 +1,71 @@
+"""Shared helpers of the benchmark scripts (``scripts/bench_*.py``): the machine a result was
+measured on, and device-synchronised timing. Not part of the public API."""
+from __future__ import annotations
+
+import os
+import platform
+import statistics
+import time
+from typing import Callable, Tuple
+
+import torch
+
+__all__ = ["machine_info", "machine", "sync", "median_ms"]
+
+
+def machine_info(device="cpu") -> dict:
+    """What the numbers were measured on: CPU model, logical cores, torch version and threads,
+    the GPU (when ``device`` is CUDA) and the 1-minute load average now."""
+    device = torch.device(device)
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return {
+        "threads": torch.get_num_threads(),
+        "cpu_cores": os.cpu_count(),
+        "torch": str(torch.__version__),
+        "cpu": cpu,
+        "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
+        "cuda": torch.version.cuda if device.type == "cuda" else None,
+        "load_avg_1min_at_start": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None,
+    }
+
+
+def machine(device="cpu") -> str:
+    """One line naming the machine (see :func:`machine_info`)."""
+    i = machine_info(device)
+    desc = f"{i['cpu']}, {i['cpu_cores']} logical CPUs, torch {i['torch']}, {i['threads']} threads"
+    if i["gpu"]:
+        desc = f"{i['gpu']} (CUDA {i['cuda']}); host: {desc}"
+    return desc
+
+
+def sync(device) -> None:
+    """Wait for the device (CUDA) before reading a clock."""
+    device = torch.device(device)
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def median_ms(fn: Callable[[], object], device="cpu", repeats: int = 5, time_cap: float = 20.0,
+              min_repeats: int = 3) -> Tuple[float, int]:
+    """Median wall time of ``fn()`` in ms after one warm-up call, synchronising the device
+    around every call; between ``min_repeats`` and ``repeats`` timed calls, as many as fit in
+    ``time_cap`` seconds. Returns (median ms, timed calls)."""
+    sync(device)
+    t0 = time.perf_counter()
+    fn()
+    sync(device)
+    warm = time.perf_counter() - t0
+    n = max(min(min_repeats, repeats), min(repeats, int(time_cap / max(warm, 1e-9))))
+    times = []
+    for _ in range(n):
+        sync(device)
+        t0 = time.perf_counter()
+        fn()
+        sync(device)
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times) * 1e3, n
