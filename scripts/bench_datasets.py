@@ -1,0 +1,202 @@
+"""Dataset generation and reading throughput (``ams-torch generate`` and HairSequenceDataset).
+
+Generation: one recipe (default: 1,000 grown strands × 32 particles on the default head, head
+collisions, random head motions, 30 frames per sequence, 8 sequences) generated end to end with
+``batch`` ∈ {1, 4} (sequences per batched simulation), timed as wall clock including growth,
+SDF loading, simulation and HDF5 writes. Throughput is frames × strands per second.
+
+Reading: the generated dataset (float32, shuffle + gzip), and copies of it stored as float16 +
+gzip, float32 + lzf and float32 uncompressed, read through ``HairSequenceDataset(window=8)``
+with ``DataLoader(batch_size=4, shuffle=True, num_workers ∈ {0, 1, 2})`` for up to --read-seconds
+per case (after one warm-up batch). Reported: windows/s and MB/s of float32 tensors delivered.
+
+Writes docs/benchmarks/datasets.json and docs/benchmarks/datasets.md.
+
+    python scripts/bench_datasets.py            # default sizes, a few minutes on 2 CPU cores
+    python scripts/bench_datasets.py --quick    # 200 strands × 16, 4 sequences of 10 frames
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from ams_torch._bench import machine, machine_info  # noqa: E402
+from ams_torch.data import HairSequenceDataset  # noqa: E402
+from ams_torch.datagen import generate  # noqa: E402
+from ams_torch.recipe import parse_recipe  # noqa: E402
+
+
+def bench_recipe(strands: int, particles: int, frames: int, sequences: int, batch: int) -> dict:
+    return {
+        "name": f"bench-b{batch}", "sequences": sequences, "frames": frames, "batch": batch,
+        "head": {"mesh": "default", "subdivisions": 4, "sdf_resolution": 64},
+        "groom": {"preset": {"choice": ["straight", "wavy", "bob"]}, "strands": strands, "particles": particles},
+        "stages": {"collisions": True},
+        "motion": {"type": {"choice": ["shake", "nod", "random"]},
+                   "shake": {"amplitude": {"uniform": [0.3, 0.9]}, "frequency": {"uniform": [0.8, 2.0]}},
+                   "random": {"keys": 3}},
+        "store": {"guides": 64 if strands >= 64 else 0},
+    }
+
+
+def restore(src: str, dst: str, precision: str, compression: str) -> None:
+    """Copy a dataset file, rewriting the per-frame arrays with other storage settings."""
+    filters = {} if compression == "none" else {"compression": compression, "shuffle": True}
+    dtype = np.float16 if precision == "float16" else np.float32
+    with h5py.File(src, "r") as a, h5py.File(dst, "w") as b:
+        for k, v in a.attrs.items():
+            b.attrs[k] = v
+        for name in a:
+            g = b.create_group(name)
+            for k, v in a[name].attrs.items():
+                g.attrs[k] = v
+            for key in a[name]:
+                d = a[name][key]
+                if key in ("positions", "velocities", "guide_positions"):
+                    g.create_dataset(key, data=d[()].astype(dtype), chunks=(1,) + d.shape[1:], **filters)
+                else:
+                    g.create_dataset(key, data=d[()])
+
+
+def read_throughput(folder: str, workers: int, seconds: float, window: int = 8, batch_size: int = 4) -> dict:
+    ds = HairSequenceDataset(folder, window=window)
+    loader = torch.utils.data.DataLoader(ds, batch_size=batch_size, shuffle=True, num_workers=workers,
+                                         generator=torch.Generator().manual_seed(0), persistent_workers=False)
+    it = iter(loader)
+    next(it)  # warm-up: worker start, first file opens
+    n_items, n_bytes, t0 = 0, 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        try:
+            b = next(it)
+        except StopIteration:
+            it = iter(loader)
+            continue
+        n_items += b["positions"].shape[0]
+        n_bytes += sum(v.numel() * v.element_size() for v in b.values() if isinstance(v, torch.Tensor))
+    dt = time.perf_counter() - t0
+    del it
+    return {"windows_per_s": n_items / dt, "mb_per_s": n_bytes / dt / 1e6, "window": window,
+            "batch_size": batch_size, "items": n_items}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--strands", type=int, default=1000)
+    ap.add_argument("--particles", type=int, default=32)
+    ap.add_argument("--frames", type=int, default=30)
+    ap.add_argument("--sequences", type=int, default=8)
+    ap.add_argument("--batches", type=int, nargs="+", default=[1, 4])
+    ap.add_argument("--workers", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--read-seconds", type=float, default=8.0)
+    ap.add_argument("--threads", type=int, help="torch threads for generation")
+    ap.add_argument("--quick", action="store_true", help="200 strands x 16, 4 sequences of 10 frames")
+    ap.add_argument("--note", default="")
+    ap.add_argument("--out", default=str(REPO / "docs" / "benchmarks"))
+    args = ap.parse_args()
+    if args.quick:
+        args.strands, args.particles, args.frames, args.sequences, args.read_seconds = 200, 16, 10, 4, 2.0
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    info = machine_info("cpu")
+    t_start = time.perf_counter()
+    tmp = tempfile.mkdtemp(prefix="ams_bench_datasets_")
+    records = {"machine": machine("cpu"), "info": info, "generation": [], "reading": []}
+    try:
+        # warm the caches (head SDF, growth SDF, native solver build) so every case pays the same
+        warm = parse_recipe(bench_recipe(args.strands, args.particles, 2, 1, 1), where="warm-up")
+        generate(warm, os.path.join(tmp, "warm"), progress=False, log=lambda s: None)
+        folders = {}
+        for batch in args.batches:
+            r = parse_recipe(bench_recipe(args.strands, args.particles, args.frames, args.sequences, batch),
+                             where=f"batch {batch}")
+            out = os.path.join(tmp, f"gen-b{batch}")
+            t0 = time.perf_counter()
+            paths = generate(r, out, progress=False, log=lambda s: None)
+            sec = time.perf_counter() - t0
+            size = sum(os.path.getsize(p) for p in paths)
+            rec = {"strands": args.strands, "particles": args.particles, "frames": args.frames,
+                   "sequences": args.sequences, "batch": batch, "seconds": sec,
+                   "frame_strands_per_s": args.frames * args.sequences * args.strands / sec,
+                   "ms_per_sequence_frame": 1e3 * sec / (args.frames * args.sequences), "file_mb": size / 1e6}
+            records["generation"].append(rec)
+            folders[batch] = out
+            print(f"generate batch={batch}: {sec:.1f} s, {rec['frame_strands_per_s']:.3g} frame·strands/s, "
+                  f"{rec['ms_per_sequence_frame']:.1f} ms per sequence-frame, {size / 1e6:.1f} MB", flush=True)
+        base = folders[args.batches[0]]
+        src = next(os.path.join(base, n) for n in os.listdir(base) if n.endswith(".h5"))
+        variants = {"float32 + gzip": base}
+        for prec, comp in (("float16", "gzip"), ("float32", "lzf"), ("float32", "none")):
+            d = os.path.join(tmp, f"{prec}-{comp}")
+            os.makedirs(d)
+            restore(src, os.path.join(d, os.path.basename(src)), prec, comp)
+            variants[f"{prec} + {comp}"] = d
+        for label, folder in variants.items():
+            size = sum(os.path.getsize(os.path.join(folder, n)) for n in os.listdir(folder) if n.endswith(".h5"))
+            for w in args.workers:
+                rec = {"storage": label, "workers": w, "file_mb": size / 1e6,
+                       **read_throughput(folder, w, args.read_seconds)}
+                records["reading"].append(rec)
+                print(f"read {label:15s} workers={w}: {rec['windows_per_s']:.1f} windows/s, "
+                      f"{rec['mb_per_s']:.0f} MB/s ({size / 1e6:.1f} MB on disk)", flush=True)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    records["seconds"] = time.perf_counter() - t_start
+    records["load_avg_1min_at_end"] = round(os.getloadavg()[0], 2)
+    os.makedirs(args.out, exist_ok=True)
+    with open(os.path.join(args.out, "datasets.json"), "w") as f:
+        json.dump(records, f, indent=1)
+    write_md(records, args, os.path.join(args.out, "datasets.md"))
+    print(f"wrote {args.out}/datasets.json and datasets.md ({records['seconds']:.0f} s)")
+
+
+def write_md(rec: dict, args, path: str) -> None:
+    g0 = rec["generation"][0]
+    lines = [
+        "# Datasets: generation and read throughput", "",
+        f"Machine: {rec['machine']}  ",
+        f"Load average (1 min): {rec['info']['load_avg_1min_at_start']} at the start, "
+        f"{rec['load_avg_1min_at_end']} at the end (other processes inflate the timings).  ",
+        f"Run: `.venv/bin/python scripts/bench_datasets.py{' --quick' if args.quick else ''}` "
+        f"({rec['seconds']:.0f} s).{' ' + args.note if args.note else ''}", "",
+        "## Generation (`ams-torch generate`, one shard, wall clock end to end)", "",
+        f"Recipe: {g0['strands']:,} grown strands × {g0['particles']} particles on the default head (preset drawn "
+        f"from straight / wavy / bob), head collisions (64³ SDF), random shake / nod / keyframe motions, "
+        f"{g0['frames']} frames per sequence, {g0['sequences']} sequences, float32, shuffle + gzip, 64 guides "
+        f"stored. `batch` sequences share a groom and run as one batched simulation.", "",
+        "| batch | seconds | frame·strands / s | ms per sequence-frame | file MB |",
+        "|---|---|---|---|---|",
+    ]
+    for r in rec["generation"]:
+        lines.append(f"| {r['batch']} | {r['seconds']:.1f} | {r['frame_strands_per_s']:,.0f} | "
+                     f"{r['ms_per_sequence_frame']:.1f} | {r['file_mb']:.1f} |")
+    if len(rec["generation"]) > 1:
+        a, b = rec["generation"][0], rec["generation"][-1]
+        lines += ["", f"Batching {b['batch']} sequences per simulation: {a['seconds'] / b['seconds']:.2f}× the "
+                      f"throughput of batch {a['batch']}."]
+    lines += ["", "## Reading (`HairSequenceDataset(window=8)` + `DataLoader(batch_size=4, shuffle=True)`)", "",
+              "MB/s counts the float32 tensors delivered (positions, guide positions, head poses).", "",
+              "| storage | file MB | workers | windows / s | MB / s |", "|---|---|---|---|---|"]
+    for r in rec["reading"]:
+        lines.append(f"| {r['storage']} | {r['file_mb']:.1f} | {r['workers']} | {r['windows_per_s']:.1f} | "
+                     f"{r['mb_per_s']:.0f} |")
+    lines += ["", "float16 storage halves the file and costs at most about 0.1 mm of position error at 0.25 m "
+                  "from the origin (`tests/test_datasets.py` measures it)."]
+    with open(path, "w") as f:
+        f.write("\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    main()
