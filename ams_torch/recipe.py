@@ -55,13 +55,12 @@ import hashlib
 import json
 import math
 import os
-import tomllib
 from dataclasses import dataclass
 from typing import Any, Dict, List, Optional
 
 import numpy as np
 
-from .scene import SceneError, parse_scene
+from .scene import SceneError, parse_scene, read_toml
 
 __all__ = ["RecipeError", "Recipe", "load_recipe", "parse_recipe", "SAMPLERS", "STORE_DEFAULTS"]
 
@@ -306,15 +305,7 @@ class Recipe:
 def load_recipe(path: str, overrides: Optional[dict] = None) -> Recipe:
     """Read and validate a recipe TOML file; ``overrides`` replace top-level keys
     (e.g. ``{"sequences": 2}``)."""
-    if not os.path.isfile(path):
-        raise RecipeError(f"{path}: no such recipe file")
-    with open(path, "rb") as f:
-        try:
-            raw = tomllib.load(f)
-        except tomllib.TOMLDecodeError as err:
-            raise RecipeError(f"{path}: not valid TOML: {err}") from None
-    raw.setdefault("name", os.path.splitext(os.path.basename(path))[0])
-    raw.update(overrides or {})
+    raw = read_toml(path, "recipe", RecipeError, overrides)
     return parse_recipe(raw, where=path, base=os.path.dirname(os.path.abspath(path)))
 
 

@@ -125,19 +125,27 @@ def _path(v, key: str, where: str, base: str):
     return p
 
 
-def load_scene(path: str, overrides: Optional[dict] = None) -> dict:
-    """Read and validate a scene TOML file. ``overrides``: top-level keys replacing the file's
-    (e.g. ``{"frames": 3, "scale": 0.1}``). Returns the validated scene dict (paths resolved)."""
+def read_toml(path: str, kind: str, error=None, overrides: Optional[dict] = None) -> dict:
+    """Read a TOML file as a dict with ``name`` defaulting to the file stem and ``overrides``
+    replacing top-level keys; a missing file or bad TOML raises ``error`` (default
+    :class:`SceneError`) naming the file."""
+    error = error or SceneError
     if not os.path.isfile(path):
-        raise SceneError(f"{path}: no such scene file")
+        raise error(f"{path}: no such {kind} file")
     with open(path, "rb") as f:
         try:
             raw = tomllib.load(f)
         except tomllib.TOMLDecodeError as err:
-            raise SceneError(f"{path}: not valid TOML: {err}") from None
+            raise error(f"{path}: not valid TOML: {err}") from None
     raw.setdefault("name", os.path.splitext(os.path.basename(path))[0])
-    for k, v in (overrides or {}).items():
-        raw[k] = v
+    raw.update(overrides or {})
+    return raw
+
+
+def load_scene(path: str, overrides: Optional[dict] = None) -> dict:
+    """Read and validate a scene TOML file. ``overrides``: top-level keys replacing the file's
+    (e.g. ``{"frames": 3, "scale": 0.1}``). Returns the validated scene dict (paths resolved)."""
+    raw = read_toml(path, "scene", SceneError, overrides)
     return parse_scene(raw, where=path, base=os.path.dirname(os.path.abspath(path)))
 
 
