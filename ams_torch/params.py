@@ -7,7 +7,22 @@ from typing import Tuple, Union
 
 import torch
 
-__all__ = ["Params"]
+__all__ = ["Params", "PARAM_PRESETS"]
+
+#: Named speed–accuracy presets for :meth:`Params.preset`, chosen from the measured Pareto fronts
+#: of ``scripts/bench_tradeoff.py`` (see docs/tradeoff.md for the numbers and the rule).
+#: ``params``: the :class:`Params` fields a preset sets. ``settings``: what goes with it but is
+#: not a Params field: particles per strand N (resample the groom to it), the dtype of the
+#: :class:`~ams_torch.Simulator`, and the hair–hair grid resolution R (``HairHair(resolution=R)``)
+#: where the scene has hair–hair interaction.
+PARAM_PRESETS = {
+    "fast": {"params": {"substeps": 1},
+             "settings": {"particles": 16, "dtype": "float32", "hair_hair_resolution": 32}},
+    "balanced": {"params": {"substeps": 2},
+                 "settings": {"particles": 32, "dtype": "float32", "hair_hair_resolution": 64}},
+    "accurate": {"params": {"substeps": 8},
+                 "settings": {"particles": 64, "dtype": "float32", "hair_hair_resolution": 128}},
+}
 
 Scalar = Union[float, torch.Tensor]
 
@@ -155,6 +170,32 @@ class Params:
                     angular_stiffness=1e2, drag=1.5)
         base.update(changes)
         return Params(**base)
+
+    @staticmethod
+    def preset(name: str, **changes) -> "Params":
+        """A named speed–accuracy preset: ``"fast"``, ``"balanced"`` or ``"accurate"``.
+
+        Returns the library defaults (SI units) with the preset's fields (``PARAM_PRESETS[name]
+        ["params"]``, e.g. ``substeps``) and then ``changes`` applied, validated. Use it with the
+        settings of :meth:`preset_settings` (particles per strand, dtype, hair–hair grid).
+        Raises ``ValueError`` for an unknown name (listing the names) or an invalid field.
+
+        Example: ``Params.preset("balanced", drag=2.0)``.
+        """
+        if name not in PARAM_PRESETS:
+            raise ValueError(f"unknown Params preset {name!r}; choose one of {', '.join(PARAM_PRESETS)}")
+        merged = dict(PARAM_PRESETS[name]["params"])
+        merged.update(changes)
+        return Params().replace(**merged)
+
+    @staticmethod
+    def preset_settings(name: str) -> dict:
+        """What goes with :meth:`preset` but is not a Params field: ``{"particles": N,
+        "dtype": "float32" | "float64", "hair_hair_resolution": R}`` (a copy). Raises
+        ``ValueError`` for an unknown name."""
+        if name not in PARAM_PRESETS:
+            raise ValueError(f"unknown Params preset {name!r}; choose one of {', '.join(PARAM_PRESETS)}")
+        return dict(PARAM_PRESETS[name]["settings"])
 
     @property
     def substep_dt(self) -> float:
