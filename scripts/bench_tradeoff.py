@@ -239,8 +239,6 @@ def sweep_settings(raw: dict, args) -> list[dict]:
     for m in jm:
         for n in jn:
             cands.append((dict(base, substeps=m, particles=n), "joint"))
-    for p in PRESET_NAMES:
-        cands.append((preset_setting(p, raw), "preset"))
     out: dict = {}
     for s, axis in cands:
         rec = out.setdefault(setting_key(s), dict(s, axes=[]))
@@ -298,62 +296,72 @@ def _geomean(values) -> float:
     return float(math.exp(sum(math.log(v) for v in values) / len(values)))
 
 
-def choose_presets(records: list[dict], scenes: list[str], budgets: dict) -> dict:
+def _pick(cands: list, cost, error, budget: float, tol: float):
+    """The cheapest candidate whose error is within ``tol`` (relative) of the lowest error among
+    the candidates costing at most ``budget``; the cheapest candidate when none fits."""
+    within = [c for c in cands if cost(c) <= budget]
+    if not within:
+        return min(cands, key=cost)
+    best = min(error(c) for c in within)
+    return min((c for c in within if error(c) <= (1 + tol) * best), key=cost)
+
+
+def choose_presets(records: list[dict], scenes: list[str], budgets: dict, tol: float = 0.05) -> dict:
     """Pick ``fast`` / ``balanced`` / ``accurate`` from the measured data.
 
-    1. Substeps M and particles N: for every (M, N) of the joint grid measured in every scene
-       (float32, every stage on), cost = geometric mean over scenes of ms/frame relative to the
-       scene's base setting (M = 1, N = 32) and error = geometric mean of RMS error relative to the
-       base's. A preset is the lowest-error point of that aggregated Pareto front whose cost is at
-       most its budget (``budgets``: × the base cost).
-    2. Hair–hair grid (scenes with hair–hair; grid sweep at the base setting): the lowest-error
-       grid whose frame costs at most the budget × the base frame (the cheapest if none does).
-    3. dtype (dtype sweep at the base): float64 only if it lowers the geometric-mean error by
-       more than 5 % within the budget; otherwise float32.
+    Each preset has a cost budget (``budgets``, × the cost of the library default M = 1, N = 32,
+    float32, 64³ grid) and takes, on each axis, the cheapest option whose error is within ``tol``
+    (5 %) of the lowest error that fits in the budget (improvements smaller than that are not
+    worth paying for, and are below the run-to-run noise of the timings):
 
-    Returns ``{name: {"substeps", "particles", "dtype", "grid", "cost", "error", "front"}}``.
+    1. substeps M and particles N, jointly: for every (M, N) of the joint grid measured in every
+       scene (float32, every stage on), cost = geometric mean over scenes of ms/frame relative to
+       the scene's base setting and error = geometric mean of RMS error relative to the base's;
+       only points of this aggregated Pareto front are candidates;
+    2. the hair–hair grid (scenes with hair–hair; the grid sweep at the base setting);
+    3. the dtype (the dtype sweep at the base setting; geometric means over scenes).
+
+    Returns ``{name: {"substeps", "particles", "dtype", "grid", "cost", "error", "budget"}}``
+    plus ``_front`` and ``_points`` (the aggregated (M, N) points).
     """
     by = {(r["scene"], setting_key(r["settings"])): r for r in records if r["rms_error_mm"] is not None}
-    base = {sc: by.get((sc, setting_key(dict(BASE, grid=_base_grid(records, sc), off=[])))) for sc in scenes}
+
+    def rec(sc, **kw):
+        return by.get((sc, setting_key(dict(BASE, grid=_base_grid(records, sc), off=[]) | kw)))
+
+    base = {sc: rec(sc) for sc in scenes}
     joint = None
     for sc in scenes:
         mn = {(r["settings"]["substeps"], r["settings"]["particles"]) for r in records
               if r["scene"] == sc and "joint" in r["axes"] and r["rms_error_mm"] is not None}
         joint = mn if joint is None else joint & mn
-    pts, keys = [], sorted(joint or [])
+    keys = sorted(joint or [])
+    pts = []
     for m, n in keys:
-        cost, err = [], []
-        for sc in scenes:
-            r = by[(sc, setting_key(dict(BASE, substeps=m, particles=n, grid=_base_grid(records, sc), off=[])))]
-            cost.append(r["ms_per_frame"] / base[sc]["ms_per_frame"])
-            err.append(r["rms_error_mm"] / base[sc]["rms_error_mm"])
-        pts.append((_geomean(cost), _geomean(err)))
+        pts.append((_geomean([rec(sc, substeps=m, particles=n)["ms_per_frame"] / base[sc]["ms_per_frame"]
+                              for sc in scenes]),
+                    _geomean([rec(sc, substeps=m, particles=n)["rms_error_mm"] / base[sc]["rms_error_mm"]
+                              for sc in scenes])))
     front = pareto(pts)
+    hh = [sc for sc in scenes if _base_grid(records, sc)]
+    dt_pairs = [(rec(sc), rec(sc, dtype="float64")) for sc in scenes if rec(sc, dtype="float64")]
     out = {}
     for name in PRESET_NAMES:
         b = budgets[name]
-        ok = [i for i in front if pts[i][0] <= b] or [front[0]]
-        i = min(ok, key=lambda j: pts[j][1])
+        i = _pick(front, lambda j: pts[j][0], lambda j: pts[j][1], b, tol)
         m, n = keys[i]
         grid = None
-        hh_scenes = [sc for sc in scenes if _base_grid(records, sc)]
-        if hh_scenes:
-            sc = hh_scenes[0]
+        if hh:
+            sc = hh[0]
             grids = [r for r in records if r["scene"] == sc and "grid" in r["axes"] and r["rms_error_mm"] is not None]
-            within = [r for r in grids if r["ms_per_frame"] <= b * base[sc]["ms_per_frame"]]
-            pick = min(within, key=lambda r: r["rms_error_mm"]) if within else min(grids, key=lambda r: r["ms_per_frame"])
-            grid = pick["settings"]["grid"]
+            grid = _pick(grids, lambda r: r["ms_per_frame"] / base[sc]["ms_per_frame"],
+                         lambda r: r["rms_error_mm"], b, tol)["settings"]["grid"]
         dtype = "float32"
-        f32, f64 = [], []
-        for sc in scenes:
-            r32 = by.get((sc, setting_key(dict(BASE, grid=_base_grid(records, sc), off=[]))))
-            r64 = by.get((sc, setting_key(dict(BASE, dtype="float64", grid=_base_grid(records, sc), off=[]))))
-            if r32 and r64:
-                f32.append((r32["ms_per_frame"], r32["rms_error_mm"]))
-                f64.append((r64["ms_per_frame"], r64["rms_error_mm"]))
-        if f64 and _geomean([a[0] / b_[0] for a, b_ in zip(f64, f32)]) * pts[i][0] <= b and \
-                _geomean([a[1] / b_[1] for a, b_ in zip(f64, f32)]) < 0.95:
-            dtype = "float64"
+        if dt_pairs:
+            opts = [("float32", 1.0, 1.0),
+                    ("float64", _geomean([r64["ms_per_frame"] / r32["ms_per_frame"] for r32, r64 in dt_pairs]),
+                     _geomean([r64["rms_error_mm"] / r32["rms_error_mm"] for r32, r64 in dt_pairs]))]
+            dtype = _pick(opts, lambda o: o[1] * pts[i][0], lambda o: o[2], b, tol)[0]
         out[name] = {"substeps": m, "particles": n, "dtype": dtype, "grid": grid, "cost": pts[i][0],
                      "error": pts[i][1], "budget": b}
     out["_front"] = [{"substeps": keys[i][0], "particles": keys[i][1], "cost": pts[i][0], "error": pts[i][1]}
@@ -388,17 +396,25 @@ def _subset(raw: dict, count: int | None):
     return np.unique(np.linspace(0, strands - 1, count).round().astype(np.int64))
 
 
-def run_scene(name: str, args, log) -> tuple[list[dict], dict]:
-    """Reference, reference checks and every setting of one scene. Returns (records, info)."""
+def run_scene(name: str, args, log) -> tuple:
+    """Reference, reference checks, every setting of the sweeps and the time reference of one
+    scene. Returns (records, info, reference positions (F, S, N_ref, 3) m, strand subset or None)."""
     raw = scene_raw(name, args.frames[name], args.strands.get(name))
     subset = _subset(raw, args.ref_strands.get(name))
     t0 = time.perf_counter()
     ref_set = reference_setting(raw, args)
-    ref = simulate_setting(raw, ref_set, subset)
-    if ref["x"] is None:
-        raise RuntimeError(f"{name}: the reference diverged: {ref['diverged']}")
+    failed = []
+    while True:
+        ref = simulate_setting(raw, ref_set, subset)
+        if ref["x"] is not None:
+            break
+        failed.append({"settings": dict(ref_set), "diverged": ref["diverged"]})
+        log(f"[{name}] reference {setting_label(ref_set)} diverged: {ref['diverged'][:120]}")
+        if ref_set["substeps"] <= 4:
+            raise RuntimeError(f"{name}: every reference diverged: {failed}")
+        ref_set = dict(ref_set, substeps=ref_set["substeps"] // 2)  # fall back to fewer substeps
     log(f"[{name}] reference {setting_label(ref_set)}: {ref['ms']['total']:.1f} ms/frame, {ref['wall_s']:.0f} s")
-    info = {"scene": name, "frames": args.frames[name], "strands": int(raw["groom"].get("strands", 1)),
+    info = {"reference_failed": failed, "scene": name, "frames": args.frames[name], "strands": int(raw["groom"].get("strands", 1)),
             "reference": ref_set, "reference_ms_per_frame": ref["ms"]["total"], "reference_wall_s": ref["wall_s"],
             "error_strands": None if subset is None else int(len(subset)), "checks": []}
     for m, n in args.ref_checks.get(name, ()):
@@ -408,38 +424,100 @@ def run_scene(name: str, args, log) -> tuple[list[dict], dict]:
         info["checks"].append({"settings": chk_set, **e, "wall_s": chk["wall_s"]})
         log(f"[{name}] reference check {setting_label(chk_set)} vs reference: "
             f"RMS {e.get('rms_error_mm', float('nan')):.3g} mm")
-    records = []
+    records, kept = [], {}
     for s in sweep_settings(raw, args):
         axes = s.pop("axes")
-        res = simulate_setting(raw, s)
-        rec = {"scene": name, "settings": s, "axes": axes, "frames": args.frames[name], "strands": info["strands"],
-               "error_strands": info["error_strands"], "diverged": res["diverged"], "wall_s": round(res["wall_s"], 2)}
-        if res["x"] is None:
-            rec.update(ms_per_frame=None, rms_error_mm=None, max_error_mm=None, shape_error_mm=None, max_stretch=None)
-        else:
-            x = res["x"] if subset is None else res["x"][:, torch.as_tensor(subset)]
-            rec.update(ms_per_frame=round(res["ms"]["total"], 3),
-                       ms_per_stage={k: round(v, 3) for k, v in res["ms"].items() if k != "total"},
-                       **{k: float(f"{v:.5g}") for k, v in errors_mm(x, ref["x"]).items()},
-                       max_stretch=float(f"{res['stretch']:.4g}"))
+        keep = [] if "substeps" in axes else None
+        rec = measure(name, raw, s, axes, ref["x"], subset, keep)
+        if keep:
+            kept[len(records)] = keep[0]
         records.append(rec)
-        log(f"[{name}] {setting_label(s):40s} " + (
-            f"{rec['ms_per_frame']:9.1f} ms/frame  RMS {rec['rms_error_mm']:8.3f} mm  max {rec['max_error_mm']:8.2f} mm"
-            f"  shape {rec['shape_error_mm']:7.3f} mm" if res["x"] is not None else f"diverged: {res['diverged'][:80]}"))
+        log(f"[{name}] {_summary(rec)}")
+    # time discretisation alone: the substeps sweep against a float64 run at the same N with many substeps
+    m_time = args.time_ref_substeps.get(name)
+    if m_time:
+        t_set = dict(reference_setting(raw, args, substeps=m_time, particles=BASE["particles"]),
+                     grid=BASE["grid"] if has_stage(raw, "hair_hair") else None)
+        t_ref = simulate_setting(raw, t_set, subset)
+        while t_ref["x"] is None and t_set["substeps"] > 8:
+            info.setdefault("time_reference_failed", []).append({"settings": dict(t_set), "diverged": t_ref["diverged"]})
+            log(f"[{name}] time reference {setting_label(t_set)} diverged: {t_ref['diverged'][:120]}")
+            t_set = dict(t_set, substeps=t_set["substeps"] // 2)
+            t_ref = simulate_setting(raw, t_set, subset)
+        info["time_reference"] = t_set
+        info["time_reference_wall_s"] = t_ref["wall_s"]
+        for i, x in (kept.items() if t_ref["x"] is not None else ()):
+            e = errors_mm(x, t_ref["x"])
+            records[i]["time_rms_error_mm"] = float(f"{e['rms_error_mm']:.5g}")
+            records[i]["time_max_error_mm"] = float(f"{e['max_error_mm']:.5g}")
+        log(f"[{name}] time reference {setting_label(t_set)}: " + ", ".join(
+            f"M={records[i]['settings']['substeps']}: {records[i]['time_rms_error_mm']:.3g} mm" for i in kept))
     info["wall_s"] = time.perf_counter() - t0
     info["load_avg_1min_at_end"] = round(os.getloadavg()[0], 2)
-    return records, info
+    return records, info, ref["x"], subset
 
 
-def preset_setting(name: str, raw: dict) -> dict:
-    """The benchmark setting of the library's preset ``name`` (``Params.preset`` and
-    ``Params.preset_settings``) in a scene."""
-    p, extra = at.Params.preset(name), at.Params.preset_settings(name)
-    return {"substeps": p.substeps, "particles": extra["particles"], "dtype": extra["dtype"],
-            "grid": extra["hair_hair_resolution"] if has_stage(raw, "hair_hair") else None, "off": []}
+def library_presets() -> dict:
+    """The library's presets as benchmark settings: ``{name: {"substeps", "particles", "dtype", "grid"}}``
+    (``Params.preset`` and ``Params.preset_settings``)."""
+    out = {}
+    for name in PRESET_NAMES:
+        p, extra = at.Params.preset(name), at.Params.preset_settings(name)
+        out[name] = {"substeps": p.substeps, "particles": extra["particles"], "dtype": extra["dtype"],
+                     "grid": extra["hair_hair_resolution"]}
+    return out
 
 
-def run_breakdown(args, log) -> list[dict]:
+def preset_setting(preset: dict, raw: dict) -> dict:
+    """The setting of a preset (``{"substeps", "particles", "dtype", "grid"}``) in a scene: the grid
+    only where the scene has hair–hair."""
+    return {"substeps": preset["substeps"], "particles": preset["particles"], "dtype": preset["dtype"],
+            "grid": preset["grid"] if has_stage(raw, "hair_hair") else None, "off": []}
+
+
+def measure_presets(name: str, raw: dict, presets: dict, ref_x: torch.Tensor, subset, records: list, log) -> None:
+    """Tag the records of the presets' settings in scene ``name`` with the sweep ``preset``,
+    simulating (and adding) those the sweeps did not measure."""
+    for pname in PRESET_NAMES:
+        s = preset_setting(presets[pname], raw)
+        rec = next((r for r in records if r["scene"] == name and setting_key(r["settings"]) == setting_key(s)), None)
+        if rec is None:
+            rec = measure(name, raw, s, ["preset"], ref_x, subset)
+            records.append(rec)
+            log(f"[{name}] {pname}: {_summary(rec)}")
+        elif "preset" not in rec["axes"]:
+            rec["axes"].append("preset")
+        rec.setdefault("presets", []).append(pname)
+
+
+def _summary(rec: dict) -> str:
+    if rec["rms_error_mm"] is None:
+        return f"{setting_label(rec['settings']):40s} diverged: {rec['diverged'][:80]}"
+    return (f"{setting_label(rec['settings']):40s} {rec['ms_per_frame']:9.1f} ms/frame  RMS {rec['rms_error_mm']:8.3f} mm"
+            f"  max {rec['max_error_mm']:8.2f} mm  shape {rec['shape_error_mm']:7.3f} mm")
+
+
+def measure(name: str, raw: dict, s: dict, axes: list, ref_x: torch.Tensor, subset, keep=None) -> dict:
+    """Simulate one setting and compare it with the reference: one JSON record. ``keep``: a
+    list to which the compared positions (F, S, N, 3) are appended (None: not kept)."""
+    res = simulate_setting(raw, s)
+    rec = {"scene": name, "settings": s, "axes": axes, "frames": raw["frames"],
+           "strands": int(raw["groom"].get("strands", 1)), "error_strands": None if subset is None else int(len(subset)),
+           "diverged": res["diverged"], "wall_s": round(res["wall_s"], 2)}
+    if res["x"] is None:
+        rec.update(ms_per_frame=None, rms_error_mm=None, max_error_mm=None, shape_error_mm=None, max_stretch=None)
+        return rec
+    x = res["x"] if subset is None else res["x"][:, torch.as_tensor(subset)]
+    if keep is not None:
+        keep.append(x)
+    rec.update(ms_per_frame=round(res["ms"]["total"], 3),
+               ms_per_stage={k: round(v, 3) for k, v in res["ms"].items() if k != "total"},
+               **{k: float(f"{v:.5g}") for k, v in errors_mm(x, ref_x).items()},
+               max_stretch=float(f"{res['stretch']:.4g}"))
+    return rec
+
+
+def run_breakdown(args, presets: dict, log) -> list[dict]:
     """Profiled per-stage ms/frame for each preset in each scene, and for ``balanced`` with each
     stage of the scene switched off in turn."""
     out = []
@@ -448,7 +526,7 @@ def run_breakdown(args, log) -> list[dict]:
         for preset in PRESET_NAMES:
             variants = [[]] + ([[st] for st in scene_stages(raw)] if preset == "balanced" else [])
             for off in variants:
-                s = dict(preset_setting(preset, raw), off=off)
+                s = dict(preset_setting(presets[preset], raw), off=off)
                 ms = profile_setting(raw, s, args.profile_frames)
                 out.append({"scene": name, "preset": preset, "settings": s,
                             "ms_per_frame": {k: round(v, 3) for k, v in ms.items()}})
@@ -457,16 +535,27 @@ def run_breakdown(args, log) -> list[dict]:
     return out
 
 
-def convergence_slopes(records: list[dict]) -> dict:
-    """Least-squares slope of log(RMS error) against log(M) over each scene's substeps sweep,
-    with the errors it was fitted to. First order (backward Euler) gives −1."""
+def convergence_slopes(records: list[dict], infos: list[dict]) -> dict:
+    """Per scene, the substeps sweep (N = 32, float32): RMS error against the scene's reference and
+    against the same-N float64 time reference, and the least-squares slope of log(error) against
+    log(M) for the latter over M ≤ M_time / 4 (further from the time reference its own error would
+    steepen the slope). First order (backward Euler) gives −1."""
     out = {}
-    for sc in sorted({r["scene"] for r in records}):
-        pts = sorted((r["settings"]["substeps"], r["rms_error_mm"]) for r in records
-                     if r["scene"] == sc and "substeps" in r["axes"] and r["rms_error_mm"])
-        if len(pts) >= 2:
-            slope = float(np.polyfit(np.log([p[0] for p in pts]), np.log([p[1] for p in pts]), 1)[0])
-            out[sc] = {"slope": slope, "substeps": [p[0] for p in pts], "rms_error_mm": [p[1] for p in pts]}
+    for info in infos:
+        sc = info["scene"]
+        rs = sorted((r for r in records if r["scene"] == sc and "substeps" in r["axes"] and r["rms_error_mm"]),
+                    key=lambda r: r["settings"]["substeps"])
+        if len(rs) < 2:
+            continue
+        d = {"substeps": [r["settings"]["substeps"] for r in rs], "rms_error_mm": [r["rms_error_mm"] for r in rs],
+             "time_rms_error_mm": [r.get("time_rms_error_mm") for r in rs], "slope": None, "fit_substeps": []}
+        m_time = info.get("time_reference", {}).get("substeps")
+        fit = [(m, e) for m, e in zip(d["substeps"], d["time_rms_error_mm"]) if e and m_time and m <= m_time / 4]
+        if len(fit) >= 2:
+            d["slope"] = float(np.polyfit(np.log([f[0] for f in fit]), np.log([f[1] for f in fit]), 1)[0])
+            d["fit_substeps"] = [f[0] for f in fit]
+            d["time_reference_substeps"] = m_time
+        out[sc] = d
     return out
 
 
@@ -487,10 +576,6 @@ def _axis_of(r: dict) -> str:
     return r["axes"][0]
 
 
-def _preset_of(r: dict, raw_by_scene: dict) -> list[str]:
-    return [p for p in PRESET_NAMES if setting_key(preset_setting(p, raw_by_scene[r["scene"]])) == setting_key(r["settings"])]
-
-
 def _log_axes(ax) -> None:
     """Log–log axes with plain-number major labels and no minor labels."""
     from matplotlib.ticker import FuncFormatter, NullFormatter
@@ -502,7 +587,7 @@ def _log_axes(ax) -> None:
         axis.set_minor_formatter(NullFormatter())
 
 
-def plot_pareto(records: list[dict], scenes: list[str], raw_by_scene: dict, path: Path) -> None:
+def plot_pareto(records: list[dict], scenes: list[str], path: Path) -> None:
     """Error (RMS, mm) against ms/frame per scene, log–log, with the Pareto front and the presets."""
     import matplotlib
 
@@ -520,7 +605,7 @@ def plot_pareto(records: list[dict], scenes: list[str], raw_by_scene: dict, path
                        label=label if a not in seen else None, zorder=3, edgecolors="none")
             seen.add(a)
             if a == "stages":
-                ax.annotate("−" + r["settings"]["off"][0], (r["ms_per_frame"], r["rms_error_mm"]), fontsize=7,
+                ax.annotate("−" + r["settings"]["off"][0], (r["ms_per_frame"], r["rms_error_mm"]), fontsize=6,
                             xytext=(3, -8), textcoords="offset points", color="tab:red")
         pts = [(r["ms_per_frame"], r["rms_error_mm"]) for r in rs]
         front = pareto(pts)
@@ -528,7 +613,7 @@ def plot_pareto(records: list[dict], scenes: list[str], raw_by_scene: dict, path
         fy = [pts[i][1] for i in front]
         ax.step(fx, fy, where="post", color="k", lw=0.8, alpha=0.6, label="Pareto front", zorder=2)
         for r in rs:
-            for p in _preset_of(r, raw_by_scene):
+            for p in r.get("presets", []):
                 ax.scatter(r["ms_per_frame"], r["rms_error_mm"], s=160, facecolors="none", edgecolors="k", lw=1.2,
                            zorder=4)
                 ax.annotate(p, (r["ms_per_frame"], r["rms_error_mm"]), fontsize=8, fontweight="bold",
@@ -551,26 +636,35 @@ def plot_pareto(records: list[dict], scenes: list[str], raw_by_scene: dict, path
 
 
 def plot_convergence(slopes: dict, path: Path) -> None:
-    """RMS error against substeps M, log–log, per scene, with a slope −1 guide."""
+    """RMS error against substeps M, log–log, per scene: against the same-N time reference (solid,
+    the time discretisation alone) and against the full reference (dotted), with a slope −1 guide."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(5.2, 4.0))
-    for sc, d in slopes.items():
-        ax.plot(d["substeps"], d["rms_error_mm"], "o-", label=f"{sc} (slope {d['slope']:.2f})")
-    if slopes:
-        d = next(iter(slopes.values()))
-        m = np.array(d["substeps"], dtype=float)
-        ax.plot(m, d["rms_error_mm"][0] / m, "k--", lw=0.8, label="slope −1")
+    fig, ax = plt.subplots(figsize=(6.0, 4.4))
+    for k, (sc, d) in enumerate(slopes.items()):
+        color = f"C{k}"
+        t = [(m, e) for m, e in zip(d["substeps"], d["time_rms_error_mm"]) if e]
+        if t:
+            slope = f"slope {d['slope']:.2f}" if d["slope"] is not None else ""
+            ax.plot([a for a, _ in t], [b for _, b in t], "o-", color=color,
+                    label=f"{sc}: vs same-N time ref. ({slope})")
+        ax.plot(d["substeps"], d["rms_error_mm"], "s:", color=color, alpha=0.7, label=f"{sc}: vs reference")
+    firsts = [(d["substeps"][0], d["time_rms_error_mm"][0]) for d in slopes.values() if d["time_rms_error_mm"][0]]
+    if firsts:
+        m = np.array(next(iter(slopes.values()))["substeps"], dtype=float)
+        top = max(e for _, e in firsts)
+        ax.plot(m, top / m, "k--", lw=0.8, label="slope −1")
     _log_axes(ax)
-    ax.set_xticks(slopes[next(iter(slopes))]["substeps"] if slopes else [1])
+    if slopes:
+        ax.set_xticks(next(iter(slopes.values()))["substeps"])
     ax.set_xlabel("substeps M")
-    ax.set_ylabel("RMS vertex error vs reference (mm)")
-    ax.set_title("Error against substeps (N = 32, float32)")
+    ax.set_ylabel("RMS vertex error (mm)")
+    ax.set_title("Error against substeps (N = 32, float32)", fontsize=10)
     ax.grid(True, which="both", alpha=0.25)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
@@ -618,19 +712,204 @@ SCENE_TEXT = {
 }
 
 
-def write_markdown(path: Path, records, infos, breakdown, chosen, slopes, machine, args, wall_s, loads) -> None:
+def _preset_rec(records, scene, pname):
+    return next((r for r in records if r["scene"] == scene and pname in r.get("presets", [])), None)
+
+
+def _row_cells(r) -> str:
+    if r is None or r["rms_error_mm"] is None:
+        return "—" if r is None else "diverged"
+    return f"{r['ms_per_frame']:.1f}; {r['rms_error_mm']:.3g} / {r['max_error_mm']:.3g} / {r['shape_error_mm']:.3g}"
+
+
+def write_markdown(path: Path, records, infos, breakdown, chosen, slopes, machine, args, wall_s, loads,
+                   command: str) -> None:
+    """docs/tradeoff.md from the measurements (see the module docstring for what each number is)."""
     scenes = [i["scene"] for i in infos]
+    library = library_presets()
     L = ["# The speed–accuracy trade, the recommended presets and the cost of each stage", ""]
-    L += ["Generated by `" + f"python scripts/bench_tradeoff.py {_shown_args()}".strip() + "` in "
+    L += ["Generated by `" + command + "` in "
           f"{wall_s / 60:.1f} min on {machine['cpu']} ({machine['cpu_cores']} cores), torch {machine['torch']}, "
-          f"{machine['threads']} intra-op thread(s), float32/float64 on CPU. Raw numbers: "
-          "[`tradeoff.json`](tradeoff.json) (one record per setting).", ""]
-    L += ["1-minute load average: " + ", ".join(f"{k} {v}" for k, v in loads) + ". Another process shared the "
-          "2 cores during the run, so absolute ms/frame are noisy (one torch thread was used because two "
-          "threads on two shared cores made small problems up to 10× slower); the ratios between settings "
-          "are what the presets rest on.", ""]
+          f"{machine['threads']} intra-op thread(s), CPU. Raw numbers: [`tradeoff.json`](tradeoff.json) (one record "
+          "per setting: `scene`, `settings`, `ms_per_frame`, `rms_error_mm`, `max_error_mm`, `shape_error_mm`, ...). "
+          "1-minute load average: " + ", ".join(f"{k} {v}" for k, v in loads) + ". Another process shared the "
+          "2 cores, so absolute ms/frame are noisy; one torch thread was used because two threads on two shared "
+          "cores made small problems up to 10× slower.", ""]
     if args.note:
         L += [args.note, ""]
+
+    # ---- summary: presets
+    L += ["## Recommended presets", "",
+          "```python", "import ams_torch as at",
+          "params = at.Params.preset(\"balanced\")          # the Params fields of the preset (substeps)",
+          "extra = at.Params.preset_settings(\"balanced\")  # particles per strand, dtype, hair–hair grid",
+          "```", "",
+          "| preset | `Params.preset` sets | particles N | dtype | hair–hair grid | "
+          + " | ".join(f"{sc}: ms/frame; RMS / max / shape error (mm)" for sc in scenes) + " |",
+          "|---|---|---:|---|---:|" + "---|" * len(scenes)]
+    for pname in PRESET_NAMES:
+        c = chosen[pname]
+        grid = c["grid"] or library[pname]["grid"]
+        L.append(f"| `{pname}` | substeps = {c['substeps']} | {c['particles']} | {c['dtype']} | {grid}³ | "
+                 + " | ".join(_row_cells(_preset_rec(records, sc, pname)) for sc in scenes) + " |")
+    base_cells = " | ".join(_row_cells(_find(records, sc)) for sc in scenes)
+    L.append(f"| library default `Params()` | substeps = 1 | 32 | float32 | 64³ | {base_cells} |")
+    mismatch = [p for p in PRESET_NAMES if (library[p]["substeps"], library[p]["particles"], library[p]["dtype"])
+                != (chosen[p]["substeps"], chosen[p]["particles"], chosen[p]["dtype"])
+                or (chosen[p]["grid"] is not None and chosen[p]["grid"] != library[p]["grid"])]
+    L += ["", "These are the presets the rule below picks from this run's data. "
+          + ("`ams_torch.params.PARAM_PRESETS` holds the same values." if not mismatch else
+             "**`ams_torch.params.PARAM_PRESETS` differs for " + ", ".join(f"`{p}`" for p in mismatch)
+             + f"** (library: {', '.join(f'{p}: {library[p]}' for p in mismatch)}): update it or rerun."), ""]
+
+    # ---- summary: findings
+    L += ["## What the measurements say", ""]
+    f = []
+
+    def rms_of(sc, **kw):
+        r = _find(records, sc, **kw)
+        return None if r is None else r["rms_error_mm"]
+
+    def ms_of(sc, **kw):
+        r = _find(records, sc, **kw)
+        return None if r is None else r["ms_per_frame"]
+
+    f.append("**Particles per strand.** RMS error at M = 1 for N = "
+             + "/".join(map(str, args.particles)) + ": "
+             + "; ".join(f"{sc} " + " / ".join(_fmt(rms_of(sc, particles=n)) for n in args.particles) + " mm"
+                         for sc in scenes) + ". N is not only a resolution here: the constants are per particle "
+             "(spring stiffness per pair, two pinned root particles), so a finer strand is also a slightly different "
+             "material, and the error against the N-refined reference falls only about first order in N.")
+    parts = []
+    for sc in scenes:
+        m_hi = max(args.substeps)
+        n_hi = max(args.joint[sc][1])
+        best = min((r for r in records if r["scene"] == sc and "joint" in r["axes"] and r["rms_error_mm"] is not None
+                    and r["settings"]["particles"] == n_hi), key=lambda r: r["rms_error_mm"], default=None)
+        parts.append(f"{sc}: N = 32, M = 1 → {m_hi}: {_fmt(rms_of(sc))} → {_fmt(rms_of(sc, substeps=m_hi))} mm"
+                     + (f"; N = {n_hi}, M = 1 → {best['settings']['substeps']}: {_fmt(rms_of(sc, particles=n_hi))} → "
+                        f"{_fmt(best['rms_error_mm'])} mm" if best else ""))
+    f.append("**Substeps.** " + "; ".join(parts) + ".")
+    sl = [f"{sc} {d['slope']:.2f}" for sc, d in slopes.items() if d.get("slope") is not None]
+    if sl:
+        f.append("**Against a same-N reference the substeps converge at first order** (backward Euler): log–log "
+                 "slopes " + ", ".join(sl) + " (see *Convergence in substeps*).")
+    dts = []
+    for sc in scenes:
+        a, b = rms_of(sc), rms_of(sc, dtype="float64")
+        if a and b:
+            dts.append(f"{sc} {abs(b - a) / a:.1%} at {ms_of(sc, dtype='float64') / ms_of(sc):.2f}× the time")
+    if dts:
+        small = all(abs(rms_of(sc, dtype="float64") - rms_of(sc)) <= 0.01 * rms_of(sc) for sc in scenes
+                    if rms_of(sc) and rms_of(sc, dtype="float64"))
+        f.append("**float64**: the RMS error changes by " + ", ".join(dts)
+                 + ("; float32 round-off is far below the discretisation error." if small else "."))
+    for sc in scenes:
+        if _find(records, sc) and _find(records, sc)["settings"].get("grid"):
+            g = [(gr, rms_of(sc, grid=gr), ms_of(sc, grid=gr)) for gr in args.grids]
+            es = [e for _, e, _ in g if e is not None]
+            f.append(f"**Hair–hair grid ({sc})**: " + ", ".join(f"{gr}³: {_fmt(e)} mm at {_fmt(t)} ms/frame"
+                                                              for gr, e, t in g if e is not None)
+                     + (". The grid's resolution moves the error by less than 5 %." if es and max(es) <= 1.05 * min(es)
+                        else "."))
+    for sc in scenes:
+        base = _find(records, sc)
+        offs = [r for r in (_find(records, sc, off=[st]) for st in STAGES) if r is not None]
+        if base and offs and base["rms_error_mm"] is not None:
+            f.append(f"**Stages ({sc})**, each switched off at the default setting (RMS {base['rms_error_mm']:.3g} mm, "
+                     f"{base['ms_per_frame']:.1f} ms/frame): " + ", ".join(
+                         f"−{r['settings']['off'][0]}: RMS {_fmt(r['rms_error_mm'])} mm, "
+                         f"{_fmt(r['ms_per_frame'])} ms" if r["rms_error_mm"] is not None else
+                         f"−{r['settings']['off'][0]}: diverged" for r in offs) + ".")
+    for sc in scenes:
+        base = _find(records, sc)
+        nocol = _find(records, sc, off=["collisions"])
+        if base and nocol and base.get("max_stretch") is not None and nocol.get("max_stretch") is not None \
+                and base["max_stretch"] > 0.1:
+            f.append(f"**Collisions stretch the hair ({sc})**: the largest edge-length error at the end of a frame "
+                     f"is {base['max_stretch']:.3g} (relative) with head collisions and {nocol['max_stretch']:.2g} "
+                     "without: the collision stage runs after inextensibility (SPEC §4) and projects particles out "
+                     "of the head without restoring edge lengths, so fast hair–head contact leaves stretched edges "
+                     "that the next frame's stiff springs then fight.")
+    for i in infos:
+        for fail in i.get("reference_failed", []):
+            f.append(f"**The {i['scene']} reference at {setting_label(fail['settings'])} diverged** "
+                     f"({fail['diverged'][:160]}); the reference is {setting_label(i['reference'])}.")
+        for fail in i.get("time_reference_failed", []):
+            f.append(f"**The {i['scene']} time reference at {setting_label(fail['settings'])} diverged** "
+                     f"({fail['diverged'][:160]}).")
+    div = [f"{r['scene']} {setting_label(r['settings'])}" for r in records if r["diverged"]]
+    if div:
+        f.append("**Diverged settings**: " + "; ".join(div) + ".")
+    L += [f"- {x}" for x in f] + [""]
+
+    L += ["## Error against cost", "", "![Pareto plot: RMS error against ms/frame](tradeoff_pareto.png)", "",
+          "Each point is one setting; the black step line is the Pareto front of the scene (no other setting is "
+          "both faster and more accurate); circled points are the presets.", ""]
+
+    # ---- how chosen
+    L += ["## How the presets were chosen", "",
+          "`choose_presets` in the script, on this run's data. Each preset has a cost budget ("
+          + ", ".join(f"`{p}` ≤ {args.budgets[p]:g}×" for p in PRESET_NAMES)
+          + " the cost of the library default M = 1, N = 32, float32, 64³ grid) and takes, on each axis, the "
+          "cheapest option whose error is within 5 % of the lowest error that fits in its budget (smaller gains "
+          "are not worth paying for and are below the noise of the timings):", "",
+          "1. M and N jointly: for every (M, N) of the joint grid measured in all scenes (float32, every stage on), "
+          "cost = geometric mean over the scenes of ms/frame relative to the scene's default and error = geometric "
+          "mean of RMS error relative to the default's; the candidates are the points of this aggregated Pareto "
+          "front (table below).",
+          "2. The hair–hair grid: the grid sweep of the head scene (at M = 1, N = 32).",
+          "3. The dtype: the dtype sweep (geometric mean over the scenes).", "",
+          "| M | N | cost (× default) | error (× default) | on the front | preset |", "|---:|---:|---:|---:|---|---|"]
+    front_keys = {(x["substeps"], x["particles"]) for x in chosen["_front"]}
+    for pt in chosen["_points"]:
+        k = (pt["substeps"], pt["particles"])
+        tag = ", ".join(p for p in PRESET_NAMES if (chosen[p]["substeps"], chosen[p]["particles"]) == k)
+        L.append(f"| {k[0]} | {k[1]} | {pt['cost']:.2f} | {pt['error']:.2f} | {'yes' if k in front_keys else ''} | "
+                 f"{tag} |")
+    L.append("")
+
+    # ---- convergence
+    L += ["## Convergence in substeps", "", "![RMS error against substeps](tradeoff_convergence.png)", "",
+          "The substeps sweep (N = 32, float32, every stage on) against two references: the scene's reference "
+          "(M, N and grid all refined) and a *time reference*, float64 at the same N = 32 (and 64³ grid) with many "
+          "substeps, which isolates the time discretisation. The slope is fitted over M ≤ M_time / 4.", "",
+          "| scene | against | " + " | ".join(f"M = {m}" for m in args.substeps) + " | log–log slope |",
+          "|---|---|" + "---:|" * (len(args.substeps) + 1)]
+    for sc, d in slopes.items():
+        errs = dict(zip(d["substeps"], d["rms_error_mm"]))
+        terrs = dict(zip(d["substeps"], d["time_rms_error_mm"]))
+        if any(terrs.values()):
+            L.append(f"| {sc} | time reference (M = {d.get('time_reference_substeps')}, N = 32) | "
+                     + " | ".join(_fmt(terrs.get(m)) for m in args.substeps)
+                     + f" | {_fmt(d['slope'], 2) if d['slope'] is not None else '—'} |")
+        L.append(f"| {sc} | reference | " + " | ".join(_fmt(errs.get(m)) for m in args.substeps) + " | |")
+    L += ["", "RMS error in mm. Against the same-N time reference the error falls at first order, as backward Euler "
+          "should (slope ≈ −1; `tests/test_tradeoff.py` checks this on a small wisp). Against the full reference it "
+          "stops falling after a few substeps: there the error of N = 32 particles dominates, and no number of "
+          "substeps removes it.", ""]
+
+    # ---- breakdown
+    L += ["## Where a frame's time goes", "",
+          f"`torch.profiler` over {args.profile_frames} frames (after a one-frame warm-up run) on the `ams_torch.*` "
+          "labels of `ams_torch/integrator.py` and `ams_torch.scene.simulate`, ms/frame, profiler overhead included "
+          "(totals are above the un-profiled ms/frame). `springs`: edge/bend/torsion forces and Jacobian blocks; "
+          "`biphasic`: integrity and angular couplings; `assembly`: the rest of the system assembly; `solve`: the "
+          "banded solve; `other`: pose interpolation, position updates, divergence guard. The `balanced` rows with "
+          "a stage switched off show that the stage's cost goes to 0 (`biphasic` off is plain MS; `guard` off is "
+          "`check_every = 0`).", ""]
+    cols = ("springs", "biphasic", "assembly", "solve", "inextensibility", "hair_hair", "collisions", "other", "total")
+    for sc in scenes:
+        L += [f"**{sc}**", "", "| preset | switched off | " + " | ".join(cols) + " |",
+              "|---|---|" + "---:|" * len(cols)]
+        for b in breakdown:
+            if b["scene"] == sc:
+                off = b["settings"]["off"]
+                L.append(f"| {b['preset']} | {off[0] if off else ''} | "
+                         + " | ".join(_fmt(b["ms_per_frame"].get(c), 3) for c in cols) + " |")
+        L.append("")
+
+    # ---- method
     L += ["## What was measured", "",
           "| scene | groom | frames | reference (float64) | reference ms/frame | errors on |",
           "|---|---|---:|---|---:|---|"]
@@ -639,8 +918,8 @@ def write_markdown(path: Path, records, infos, breakdown, chosen, slopes, machin
         L.append(f"| {i['scene']} | {i['strands']} strands; {SCENE_TEXT[i['scene']]} | {i['frames']} | "
                  f"M = {ref['substeps']}, N = {ref['particles']}" + (f", grid {ref['grid']}³" if ref["grid"] else "")
                  + f" | {i['reference_ms_per_frame']:.0f} | "
-                 + (f"{i['error_strands']} evenly spaced strands (exact: no hair–hair, strands are independent)"
-                    if i["error_strands"] else "all strands") + " |")
+                 + (f"{i['error_strands']} evenly spaced strands (exact: without hair–hair the strands are "
+                    "independent)" if i["error_strands"] else "all strands") + " |")
     L += ["",
           "- **Settings.** The base setting is the library default: M = 1 substep, N = 32 particles per strand, "
           "float32, a 64³ hair–hair grid where hair–hair is on, every stage on. Around it each axis is swept alone: "
@@ -650,8 +929,8 @@ def write_markdown(path: Path, records, infos, breakdown, chosen, slopes, machin
           "`check_every = 0`). Then a joint M × N grid in float32 ("
           + "; ".join(f"{sc}: M ∈ {{{', '.join(map(str, args.joint[sc][0]))}}} × N ∈ "
                       f"{{{', '.join(map(str, args.joint[sc][1]))}}}" for sc in scenes)
-          + "), and the three presets as the library defines them. The full cross product "
-          "(5 × 4 × 2 × 3 × stages) was not run: it does not fit in 30 minutes on 2 cores.",
+          + ") and the presets. The full cross product (5 × 4 × 2 × 3 × stages) was not run: it does not fit "
+          "in 30 minutes on 2 cores.",
           "- **Grooms at each N.** Each groom is grown (or built) at N particles, i.e. resampled uniformly in arc "
           "length from the same curves, so every N describes the same hair.",
           "- **Error at matching material points.** Particle k of an N-particle strand sits at the rest arc-length "
@@ -664,133 +943,13 @@ def write_markdown(path: Path, records, infos, breakdown, chosen, slopes, machin
           "`ams_torch.scene.simulate`), with the divergence guard on.", ""]
     checks = [(i["scene"], c) for i in infos for c in i["checks"]]
     if checks:
-        L += ["How converged the references are (the same reference with half the substeps or fewer particles; "
-              "errors below these are not resolved):", "",
+        L += ["How converged the references are (the reference with half the substeps, or half the particles; "
+              "the reference's own error is of this order):", "",
               "| scene | check run | RMS vs reference (mm) | max (mm) | shape (mm) |", "|---|---|---:|---:|---:|"]
         for sc, c in checks:
             L.append(f"| {sc} | {setting_label(c['settings'])} | {_fmt(c.get('rms_error_mm'))} | "
                      f"{_fmt(c.get('max_error_mm'))} | {_fmt(c.get('shape_error_mm'))} |")
         L.append("")
-    L += ["## Error against cost", "", "![Pareto plot: RMS error against ms/frame](tradeoff_pareto.png)", "",
-          "Each point is one setting; the black step line is the Pareto front (no other setting is both faster "
-          "and more accurate); circled points are the presets.", ""]
-
-    # presets
-    L += ["## Recommended presets", "",
-          "```python", "import ams_torch as at",
-          "params = at.Params.preset(\"balanced\")          # Params fields of the preset (substeps)",
-          "extra = at.Params.preset_settings(\"balanced\")  # particles, dtype, hair_hair_resolution",
-          "```", "",
-          "| preset | `Params.preset` sets | particles N | dtype | hair–hair grid | "
-          + " | ".join(f"{sc}: ms/frame, RMS / max / shape (mm)" for sc in scenes) + " |",
-          "|---|---|---:|---|---:|" + "---|" * len(scenes)]
-    for p in PRESET_NAMES:
-        fields = PARAM_PRESETS[p]["params"]
-        extra = at.Params.preset_settings(p)
-        cells = []
-        for sc in scenes:
-            r = next((r for r in records if r["scene"] == sc and "preset" in r["axes"]
-                      and setting_key(r["settings"]) == setting_key(preset_setting(p, scene_raw(sc, 1)))), None)
-            cells.append("—" if r is None or r["rms_error_mm"] is None else
-                         f"{r['ms_per_frame']:.1f}, {r['rms_error_mm']:.3g} / {r['max_error_mm']:.3g} / "
-                         f"{r['shape_error_mm']:.3g}")
-        L.append(f"| `{p}` | {', '.join(f'{k} = {v}' for k, v in fields.items())} | {extra['particles']} | "
-                 f"{extra['dtype']} | {extra['hair_hair_resolution']}³ | " + " | ".join(cells) + " |")
-    L += ["", "**How they were chosen** (`choose_presets` in the script, run on this data):", "",
-          "1. For every (M, N) of the joint grid measured in all scenes (float32, every stage on), cost = geometric "
-          "mean over the scenes of ms/frame relative to the scene's base setting (M = 1, N = 32) and error = "
-          "geometric mean of RMS error relative to the base's. Each preset is the lowest-error point of this "
-          "aggregated Pareto front within a cost budget: "
-          + ", ".join(f"`{p}` ≤ {args.budgets[p]:g}× the default" for p in PRESET_NAMES) + ".",
-          "2. The hair–hair grid: the lowest-error grid of the grid sweep (head) whose frame stays within the same "
-          "budget (the cheapest grid if none does).",
-          "3. dtype: float64 only if it lowers the error by more than 5 % within the budget.", "",
-          "| M | N | cost (× default) | error (× default) | on the front |", "|---:|---:|---:|---:|---|"]
-    front_keys = {(f["substeps"], f["particles"]) for f in chosen["_front"]}
-    for pt in chosen["_points"]:
-        tag = ", ".join(p for p in PRESET_NAMES if (chosen[p]["substeps"], chosen[p]["particles"])
-                        == (pt["substeps"], pt["particles"]))
-        L.append(f"| {pt['substeps']} | {pt['particles']} | {pt['cost']:.2f} | {pt['error']:.2f} | "
-                 f"{'yes' if (pt['substeps'], pt['particles']) in front_keys else ''}"
-                 f"{' (' + tag + ')' if tag else ''} |")
-    mismatch = []
-    for p in PRESET_NAMES:
-        lib = preset_setting(p, {"stages": {"hair_hair": True}, "groom": {}})
-        c = chosen[p]
-        if (lib["substeps"], lib["particles"], lib["dtype"], lib["grid"]) != (c["substeps"], c["particles"], c["dtype"],
-                                                                              c["grid"] or lib["grid"]):
-            mismatch.append(f"`{p}`: this run picks M = {c['substeps']}, N = {c['particles']}, {c['dtype']}, "
-                            f"grid {c['grid']}")
-    L += ["", ("The library's presets (`ams_torch.params.PARAM_PRESETS`) are the ones this rule picks from this run."
-               if not mismatch else "**The library's presets differ from what this run's data pick:** "
-               + "; ".join(mismatch) + ". (Timings are noisy on a shared machine; the library keeps its "
-               "values until a quiet run confirms the change.)"), ""]
-
-    # convergence
-    L += ["## Convergence in substeps", "", "![RMS error against substeps](tradeoff_convergence.png)", "",
-          "| scene | " + " | ".join(f"M = {m}" for m in args.substeps) + " | log–log slope |",
-          "|---|" + "---:|" * (len(args.substeps) + 1)]
-    for sc, d in slopes.items():
-        errs = dict(zip(d["substeps"], d["rms_error_mm"]))
-        L.append(f"| {sc} | " + " | ".join(_fmt(errs.get(m)) for m in args.substeps) + f" | {d['slope']:.2f} |")
-    L += ["", "RMS error (mm) at N = 32, float32. Backward Euler is first order, so the splitting error alone "
-          "would fall with slope −1; the errors here also hold the N = 32 discretisation error against the "
-          "N-particle reference and the once-per-frame stages, which do not shrink with M, so the slope "
-          "flattens where they dominate. `tests/test_tradeoff.py` checks the slope on a small wisp.", ""]
-
-    # breakdown
-    L += ["## Where a frame's time goes", "",
-          f"`torch.profiler` over {args.profile_frames} frames (after one warm-up frame) on the `ams_torch.*` "
-          "labels of `ams_torch/integrator.py` and `ams_torch.scene.simulate`, ms/frame (profiler overhead "
-          "included, so totals are a little above the un-profiled ms/frame). `springs`: edge/bend/torsion forces "
-          "and Jacobian blocks; `biphasic`: integrity and angular couplings; `assembly`: the rest of the system "
-          "assembly; `solve`: the banded solve; `other`: pose interpolation, position updates, divergence guard. "
-          "The `balanced` rows with a stage off show that the stage's cost goes to 0.", ""]
-    cols = ("springs", "biphasic", "assembly", "solve", "inextensibility", "hair_hair", "collisions", "other", "total")
-    for sc in scenes:
-        L += [f"**{sc}**", "", "| preset | switched off | " + " | ".join(cols) + " |",
-              "|---|---|" + "---:|" * len(cols)]
-        for b in breakdown:
-            if b["scene"] != sc:
-                continue
-            off = b["settings"]["off"]
-            L.append(f"| {b['preset']} | {off[0] if off else ''} | "
-                     + " | ".join(_fmt(b["ms_per_frame"].get(c), 3) for c in cols) + " |")
-        L.append("")
-
-    # findings
-    L += ["## Findings", ""]
-    for sc in scenes:
-        base = _find(records, sc)
-        if base is None or base["rms_error_mm"] is None:
-            continue
-        bits = [f"**{sc}** (default: {base['ms_per_frame']:.1f} ms/frame, RMS {base['rms_error_mm']:.3g} mm, "
-                f"max {base['max_error_mm']:.3g} mm, shape {base['shape_error_mm']:.3g} mm)"]
-        m16 = _find(records, sc, substeps=max(args.substeps))
-        if m16 and m16["rms_error_mm"] is not None:
-            bits.append(f"M = {max(args.substeps)}: RMS {m16['rms_error_mm']:.3g} mm at "
-                        f"{m16['ms_per_frame'] / base['ms_per_frame']:.1f}× the cost")
-        ns = [(n, _find(records, sc, particles=n)) for n in args.particles]
-        bits.append("N = " + ", ".join(f"{n}: {r['rms_error_mm']:.3g} mm ({r['ms_per_frame']:.1f} ms)"
-                                       for n, r in ns if r and r["rms_error_mm"] is not None))
-        f64 = _find(records, sc, dtype="float64")
-        if f64 and f64["rms_error_mm"] is not None:
-            bits.append(f"float64: RMS {f64['rms_error_mm']:.4g} mm vs {base['rms_error_mm']:.4g} mm in float32 "
-                        f"at {f64['ms_per_frame'] / base['ms_per_frame']:.2f}× the cost")
-        if base["settings"].get("grid"):
-            gs = [(g, _find(records, sc, grid=g)) for g in args.grids]
-            bits.append("grid " + ", ".join(f"{g}³: {r['rms_error_mm']:.3g} mm, {r['ms_per_frame']:.0f} ms"
-                                            for g, r in gs if r and r["rms_error_mm"] is not None))
-        offs = [r for r in records if r["scene"] == sc and r["settings"]["off"] and r["rms_error_mm"] is not None]
-        if offs:
-            bits.append("stage off → RMS, ms saved: " + ", ".join(
-                f"−{r['settings']['off'][0]}: {r['rms_error_mm']:.3g} mm, "
-                f"{base['ms_per_frame'] - r['ms_per_frame']:+.1f} ms" for r in offs))
-        div = [setting_label(r["settings"]) for r in records if r["scene"] == sc and r["diverged"]]
-        if div:
-            bits.append("diverged: " + ", ".join(div))
-        L.append("- " + "; ".join(bits) + ".")
-    L.append("")
     for sc in scenes:
         L += [f"## All settings: {sc}", "",
               "| setting | sweeps | ms/frame | RMS (mm) | max (mm) | shape (mm) | max stretch |",
@@ -812,31 +971,45 @@ def main(argv=None) -> None:
     p.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1; 0: torch's default)")
     p.add_argument("--profile-frames", type=int, help="frames profiled per breakdown row (default 5; --quick: 1)")
     p.add_argument("--out", type=Path, help="output folder (default docs/; --quick: out/tradeoff_quick)")
+    p.add_argument("--render-only", action="store_true",
+                   help="rewrite tradeoff.md and the plots from an existing tradeoff.json in --out (no simulation)")
     p.add_argument("--note", default="", help="a sentence added to tradeoff.md (e.g. machine load)")
     args = p.parse_args(argv)
     if args.threads > 0:
         torch.set_num_threads(args.threads)
     q = args.quick
-    args.frames = {"wisp": 10, "head": 4, "roller_coaster": 8} if q else {"wisp": 120, "head": 40, "roller_coaster": 100}
+    args.frames = {"wisp": 10, "head": 4, "roller_coaster": 8} if q else {"wisp": 120, "head": 30, "roller_coaster": 100}
     args.strands = {"wisp": 4, "head": 60, "roller_coaster": 30} if q else {"wisp": 16, "head": 1000, "roller_coaster": 300}
     args.substeps = (1, 2, 4) if q else SUBSTEPS
     args.particles = (16, 32) if q else PARTICLES
     args.dtypes = tuple(DTYPES)
     args.grids = (32, 64) if q else GRIDS
     args.ref_grid = 64 if q else 128
-    args.ref_substeps = {"wisp": 8, "head": 4, "roller_coaster": 4} if q else {"wisp": 64, "head": 16, "roller_coaster": 32}
+    args.ref_substeps = {"wisp": 8, "head": 4, "roller_coaster": 4} if q else {"wisp": 32, "head": 16, "roller_coaster": 32}
     args.ref_particles = {"wisp": 48, "head": 48, "roller_coaster": 48} if q else {"wisp": 128, "head": 96,
                                                                                   "roller_coaster": 96}
     args.ref_strands = {"roller_coaster": 10 if q else 60}
     args.ref_checks = ({"wisp": [(4, 48)]} if q else
-                       {"wisp": [(32, 128), (64, 64)], "roller_coaster": [(16, 96), (32, 48)]})
+                       {"wisp": [(16, 128), (32, 64)], "roller_coaster": [(8, 96), (16, 48)]})
     args.joint = ({sc: ((1, 2), (16, 32)) for sc in ("wisp", "head", "roller_coaster")} if q else
                   {"wisp": (SUBSTEPS, PARTICLES), "head": ((1, 2, 4, 8), (16, 32, 64)),
                    "roller_coaster": ((1, 2, 4, 8), PARTICLES)})
-    args.budgets = {"fast": 0.5, "balanced": 2.0, "accurate": 8.0}
+    args.budgets = {"fast": 0.75, "balanced": 2.0, "accurate": 8.0}
+    args.time_ref_substeps = {"wisp": 8, "head": 8, "roller_coaster": 8} if q else {"wisp": 64, "head": 16,
+                                                                                     "roller_coaster": 64}
     args.profile_frames = args.profile_frames or (1 if q else 5)
     out = args.out or (REPO / "out" / "tradeoff_quick" if q else REPO / "docs")
     out.mkdir(parents=True, exist_ok=True)
+
+    if args.render_only:
+        data = json.loads((out / "tradeoff.json").read_text())
+        records, meta = data["records"], data["meta"]
+        for k, v in meta["args"].items():
+            setattr(args, k, {kk: tuple(tuple(x) for x in vv) for kk, vv in v.items()} if k == "joint" else v)
+        _write_outputs(out, records, meta["scenes"], meta["breakdown"], meta["presets_chosen"], meta["machine"], args,
+                       meta["wall_s"], [tuple(x) for x in meta["load_avg_1min"]], meta)
+        print(f"rewrote {out / 'tradeoff.md'} and the plots from {out / 'tradeoff.json'}")
+        return
 
     machine = machine_info()
     loads = [("at the start", machine["load_avg_1min_at_start"])]
@@ -847,32 +1020,48 @@ def main(argv=None) -> None:
 
     # warm up: native solver library, SDF cache, allocator
     simulate_setting(scene_raw("wisp", 2, 2), dict(BASE, particles=8, off=[]))
-    records, infos = [], []
+    records, infos, refs = [], [], {}
     for sc in args.scenes:
-        recs, info = run_scene(sc, args, log)
+        recs, info, ref_x, subset = run_scene(sc, args, log)
         records += recs
         infos.append(info)
+        refs[sc] = (ref_x, subset)
         loads.append((f"after {sc}", info["load_avg_1min_at_end"]))
         log(f"[{sc}] done in {info['wall_s']:.0f} s")
-    breakdown = run_breakdown(args, log)
     chosen = choose_presets(records, args.scenes, args.budgets)
-    slopes = convergence_slopes(records)
+    presets = {p: {k: chosen[p][k] for k in ("substeps", "particles", "dtype", "grid")} for p in PRESET_NAMES}
+    for p in PRESET_NAMES:
+        presets[p]["grid"] = presets[p]["grid"] or library_presets()[p]["grid"]
+        log(f"preset {p}: M={presets[p]['substeps']} N={presets[p]['particles']} {presets[p]['dtype']} "
+            f"grid={presets[p]['grid']} (cost {chosen[p]['cost']:.2f}×, error {chosen[p]['error']:.2f}× the default)")
+    for sc in args.scenes:
+        measure_presets(sc, scene_raw(sc, args.frames[sc], args.strands.get(sc)), presets, *refs[sc], records, log)
+    refs.clear()
+    breakdown = run_breakdown(args, presets, log)
+    slopes = convergence_slopes(records, infos)
     wall = time.perf_counter() - t_start
     loads.append(("at the end", round(os.getloadavg()[0], 2)))
-    raw_by_scene = {sc: scene_raw(sc, 1) for sc in args.scenes}
-    plot_pareto(records, args.scenes, raw_by_scene, out / "tradeoff_pareto.png")
-    plot_convergence(slopes, out / "tradeoff_convergence.png")
     meta = {"command": f"python scripts/bench_tradeoff.py {_shown_args()}".strip(), "wall_s": round(wall, 1),
             "machine": machine, "load_avg_1min": loads, "scenes": infos, "presets_chosen": chosen,
-            "presets_library": {k: {"params": v["params"], "settings": v["settings"]} for k, v in PARAM_PRESETS.items()},
-            "convergence": slopes, "breakdown": breakdown}
+            "presets_library": library_presets(), "convergence": slopes, "breakdown": breakdown,
+            "args": {k: getattr(args, k) for k in ("substeps", "particles", "dtypes", "grids", "joint", "budgets",
+                                                   "profile_frames", "note")}}
     (out / "tradeoff.json").write_text(json.dumps({"records": records, "meta": meta}, indent=1) + "\n")
-    write_markdown(out / "tradeoff.md", records, infos, breakdown, chosen, slopes, machine, args, wall, loads)
-    for name in PRESET_NAMES:
-        c = chosen[name]
-        log(f"preset {name}: data pick M={c['substeps']} N={c['particles']} {c['dtype']} grid={c['grid']} "
-            f"(cost {c['cost']:.2f}×, error {c['error']:.2f}× the default); library: {PARAM_PRESETS[name]}")
+    _write_outputs(out, records, infos, breakdown, chosen, machine, args, wall, loads, meta)
+    lib = library_presets()
+    for p in PRESET_NAMES:
+        if presets[p] != lib[p]:
+            log(f"NOTE: the library's preset {p} is {lib[p]}; this run picks {presets[p]}")
     log(f"wrote {out / 'tradeoff.md'}, tradeoff.json, tradeoff_pareto.png, tradeoff_convergence.png in {wall / 60:.1f} min")
+
+
+def _write_outputs(out: Path, records, infos, breakdown, chosen, machine, args, wall, loads, meta) -> None:
+    scenes = [i["scene"] for i in infos]
+    plot_pareto(records, scenes, out / "tradeoff_pareto.png")
+    slopes = convergence_slopes(records, infos)
+    plot_convergence(slopes, out / "tradeoff_convergence.png")
+    write_markdown(out / "tradeoff.md", records, infos, breakdown, chosen, slopes, machine, args, wall, loads,
+                   meta["command"])
 
 
 if __name__ == "__main__":
