@@ -18,10 +18,10 @@ __all__ = ["Params", "PARAM_PRESETS"]
 PARAM_PRESETS = {
     "fast": {"params": {"substeps": 1},
              "settings": {"particles": 16, "dtype": "float32", "hair_hair_resolution": 32}},
-    "balanced": {"params": {"substeps": 2},
-                 "settings": {"particles": 32, "dtype": "float32", "hair_hair_resolution": 64}},
-    "accurate": {"params": {"substeps": 8},
-                 "settings": {"particles": 64, "dtype": "float32", "hair_hair_resolution": 128}},
+    "balanced": {"params": {"substeps": 1},
+                 "settings": {"particles": 64, "dtype": "float32", "hair_hair_resolution": 32}},
+    "accurate": {"params": {"substeps": 4},
+                 "settings": {"particles": 64, "dtype": "float32", "hair_hair_resolution": 32}},
 }
 
 Scalar = Union[float, torch.Tensor]
@@ -77,6 +77,9 @@ class Params:
             +κ_α θ t̂ on x_{i+1}); False is the paper's one-particle force, which is not
             conservative and makes free wisps flutter (see :func:`forces.angular_force`).
         inextensibility: apply follow-the-leader length projection after the substeps.
+        collision_inextensibility: with colliders (and ``inextensibility``), restore the edge
+            lengths once more after the collision stage and push out what that moved back
+            inside, so contact does not leave stretched edges (see ``CollisionStage``).
         ftl_damping: Müller et al. 2012 velocity-correction factor s_damping ∈ [0, 1].
         max_relative_speed: m/s; a particle faster than this relative to the head's
             rigid motion is reported as divergence.
@@ -103,6 +106,7 @@ class Params:
     implicit_angular: bool = True
     angular_reaction: bool = True  # see forces.angular_force: the one-way form flutters
     inextensibility: bool = True
+    collision_inextensibility: bool = True
     ftl_damping: float = 0.9
     max_relative_speed: float = 1.0e3
     check_every: int = 1

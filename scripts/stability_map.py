@@ -316,6 +316,32 @@ def unstable_lines(records, args, inext: bool, kb: float) -> list[str]:
     return lines
 
 
+def stable_region(records, args, inext: bool, kb: float, a_g: float) -> str:
+    """Text of the stable (κ_L, dt) cells at one acceleration: ``all``, ``none``, ``κ_L/m ≥ X`` (the
+    same threshold at every dt), per-dt thresholds, or a count when the set has no threshold shape."""
+    stable = {(kl, dt) for kl in args.stiffness for dt in args.dts
+              if (r := _cell(records, inextensibility=inext, stretch_stiffness=kl, biphasic_stiffness=kb, dt=dt,
+                             accel_g=a_g)) is not None and r["status"] == "stable"}
+    total = len(args.stiffness) * len(args.dts)
+    if not stable:
+        return "none"
+    if len(stable) == total:
+        return "all"
+    thresholds = {}
+    for dt in args.dts:
+        ks = [kl for kl in args.stiffness if (kl, dt) in stable]
+        if not ks:
+            thresholds[dt] = None
+            continue
+        lo = min(ks)
+        if any((kl, dt) not in stable for kl in args.stiffness if kl >= lo):
+            return f"{len(stable)} of {total} cells"
+        thresholds[dt] = lo
+    if len(set(thresholds.values())) == 1:
+        return f"κ_L/m ≥ {_kl_text(next(iter(thresholds.values())))}"
+    return "; ".join(f"{_dt_label(dt)}: " + ("none" if t is None else f"≥ {_kl_text(t)}") for dt, t in thresholds.items())
+
+
 def machine_info() -> dict:
     cpu = platform.processor() or platform.machine()
     try:
@@ -364,6 +390,16 @@ def write_markdown(path: Path, records, args, machine, wall_s, loads) -> None:
             L.append(f"| {'on' if inext else 'off'} | {kb:g}{' (MS)' if kb == 0 else ''} | "
                      + " | ".join(str(sum(r["status"] == s for r in rs)) for s in STATUSES) + " |")
     L.append("")
+    # stable regions
+    L += ["## The stability frontier", "",
+          "Stable (κ_L/m, dt) cells for each model and peak head acceleration (`all` = every cell of the grid).", ""]
+    for inext in (True, False):
+        L += [f"**Inextensibility {'on' if inext else 'off'}**", "",
+              "| model | " + " | ".join(f"{a:g} g" for a in args.accels) + " |", "|---|" + "---|" * len(args.accels)]
+        for kb in kbs:
+            L.append(f"| {'MS' if kb == 0 else f'AMS κ_I = κ_α = {kb:g}'} | "
+                     + " | ".join(stable_region(records, args, inext, kb, a) for a in args.accels) + " |")
+        L.append("")
     # AMS vs MS
     L += ["## Where AMS is stable and MS is not, and where neither is", "",
           "![AMS against MS](stability_ams_vs_ms.png)", ""]
