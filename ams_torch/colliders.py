@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
+from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
 import torch
 import torch.nn.functional as F
@@ -558,20 +558,36 @@ class CollisionStage:
         colliders: sequence of :class:`Collider` (non-empty; a scene without colliders should
             not add the stage at all).
         free: (N,) bool, True for simulated particles (e.g. ``~model.pinned``); None = all.
+        restore_lengths: optional ``f(x, v, head_pose, dt) -> (x, v)`` that restores the edge
+            lengths (e.g. :func:`ams_torch.integrator.inextensibility`). When given, the stage
+            runs ``collide`` → ``restore_lengths`` → ``collide`` with Δt = 0 (push-out of what
+            the length pass moved back inside), ``restore_rounds`` times. Without it, contact
+            response (friction moves a particle by Δt (v' − v), push-out by the depth) leaves
+            the edges to its neighbours stretched (measured in the README's design decisions).
+        restore_rounds: rounds of length restore + push-out (≥ 1); each round shrinks what
+            is left of the stretch.
 
     Attributes:
         collider_poses: overrides for the next frames (see :func:`resolve_world_poses`); set it
             before a step to animate colliders, ``None`` to use each ``collider.pose``.
     """
 
-    def __init__(self, colliders: Sequence[Collider], free: Optional[torch.Tensor] = None):
+    def __init__(self, colliders: Sequence[Collider], free: Optional[torch.Tensor] = None,
+                 restore_lengths: Optional[Callable] = None, restore_rounds: int = 1):
         self.colliders = list(colliders)
         if not self.colliders:
             raise ValueError("CollisionStage needs at least one collider")
         self.free = free
+        self.restore_lengths = restore_lengths
+        self.restore_rounds = int(restore_rounds)
         self.collider_poses: Optional[Union[Sequence[Optional[Pose]], Mapping[int, Pose]]] = None
 
     def __call__(self, x: torch.Tensor, v: torch.Tensor, head_pose: Optional[Pose], dt: float, state=None
                  ) -> Tuple[torch.Tensor, torch.Tensor]:
         poses = resolve_world_poses(self.colliders, head_pose, self.collider_poses)
-        return collide(x, v, dt, self.colliders, poses, free=self.free)
+        x, v = collide(x, v, dt, self.colliders, poses, free=self.free)
+        if self.restore_lengths is not None:
+            for _ in range(self.restore_rounds):
+                x, v = self.restore_lengths(x, v, head_pose, dt)
+                x, v = collide(x, v, 0.0, self.colliders, poses, free=self.free)
+        return x, v

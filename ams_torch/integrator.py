@@ -33,7 +33,8 @@ from .params import Params
 from .pose import Pose
 from .solver import banded_matvec
 
-__all__ = ["assemble_system", "substep", "local_segment_length", "integrity_plastic_update", "step", "SimulationDiverged", "check_state", "resolve_pose"]
+__all__ = ["assemble_system", "substep", "local_segment_length", "integrity_plastic_update", "inextensibility", "step",
+           "SimulationDiverged", "check_state", "resolve_pose"]
 
 ExternalForce = Union[None, torch.Tensor, Callable[[torch.Tensor, torch.Tensor, float], torch.Tensor]]
 # a stage: (x, v, pose_at_end_of_frame, dt, state_before) -> (x, v)
@@ -244,6 +245,17 @@ def _external(external_force: ExternalForce, x, v, t):
     return external_force(x, v, t)
 
 
+def inextensibility(model: Model, params: Params, x: torch.Tensor, v: torch.Tensor, pose: Pose, dt: float) -> tuple:
+    """Restore every edge to its rest length (SPEC §4): follow-the-leader with Müller's velocity
+    correction (``params.ftl_damping``); a collapsed edge takes its rest direction carried by
+    ``pose`` (the head at the end of the frame). x, v: (..., S, N, 3) m, m/s; dt: the frame, s.
+    Returns the new (x, v)."""
+    with record_function("ams_torch.inextensibility"):
+        rest = model.rest_positions.expand(x.shape[:-3] + model.rest_positions.shape)
+        fallback = forces.safe_normalize(pose.rotate(rest[..., 1:, :] - rest[..., :-1, :]))[0]
+        return follow_the_leader(x, v, model.edge_rest_length, model.pinned, dt, params.ftl_damping, fallback)
+
+
 def check_state(state: State, model: Model, params: Params, where: str = "") -> None:
     """Divergence guard: raise :class:`SimulationDiverged` naming the frame and first bad strands
     if any position/velocity is non-finite or moves faster than ``params.max_relative_speed``
@@ -312,9 +324,7 @@ def step(model: Model, params: Params, state: State, pose: Optional[Pose] = None
         if nonhookean:
             offset = pb.rotate(offset_local.expand(x.shape))
     if params.inextensibility:
-        with record_function("ams_torch.inextensibility"):
-            fallback = forces.safe_normalize(pose1.rotate(rest[..., 1:, :] - rest[..., :-1, :]))[0]
-            x, v = follow_the_leader(x, v, model.edge_rest_length, model.pinned, dt, params.ftl_damping, fallback)
+        x, v = inextensibility(model, params, x, v, pose1, dt)
     for stage in stages:
         x, v = stage(x, v, pose1, dt, state)
     v = torch.where(pinned, pose1.velocity_at(x), v)

@@ -77,9 +77,9 @@ class Params:
             +κ_α θ t̂ on x_{i+1}); False is the paper's one-particle force, which is not
             conservative and makes free wisps flutter (see :func:`forces.angular_force`).
         inextensibility: apply follow-the-leader length projection after the substeps.
-        collision_inextensibility: with colliders (and ``inextensibility``), restore the edge
-            lengths once more after the collision stage and push out what that moved back
-            inside, so contact does not leave stretched edges (see ``CollisionStage``).
+        collision_inextensibility: with colliders (and ``inextensibility``), this many rounds
+            of edge-length restore (follow-the-leader) + push-out after the collision response,
+            so contact does not leave stretched edges (see ``CollisionStage``); 0 = none.
         ftl_damping: Müller et al. 2012 velocity-correction factor s_damping ∈ [0, 1].
         max_relative_speed: m/s; a particle faster than this relative to the head's
             rigid motion is reported as divergence.
@@ -106,7 +106,7 @@ class Params:
     implicit_angular: bool = True
     angular_reaction: bool = True  # see forces.angular_force: the one-way form flutters
     inextensibility: bool = True
-    collision_inextensibility: bool = True
+    collision_inextensibility: int = 1
     ftl_damping: float = 0.9
     max_relative_speed: float = 1.0e3
     check_every: int = 1
@@ -147,6 +147,10 @@ class Params:
             raise ValueError(f"Params.num_pinned must be a non-negative integer; got {self.num_pinned!r}")
         if len(tuple(self.gravity)) != 3 or not all(math.isfinite(float(g)) for g in self.gravity):
             raise ValueError(f"Params.gravity must be three finite numbers (m/s²); got {self.gravity}")
+        if isinstance(self.collision_inextensibility, bool) or not isinstance(self.collision_inextensibility, int) \
+                or self.collision_inextensibility < 0:
+            raise ValueError(f"Params.collision_inextensibility must be a non-negative integer; "
+                             f"got {self.collision_inextensibility!r}")
         if not 0.0 <= self.ftl_damping <= 1.0:
             raise ValueError(f"Params.ftl_damping must lie in [0, 1]; got {self.ftl_damping}")
         if not self.max_relative_speed > 0:

@@ -54,7 +54,12 @@ class Simulator(torch.nn.Module):
         if self.hair_hair_grid is not None:
             self.stages.append(make_stage(self.hair_hair_grid, m.particle_mass, ~m.pinned))
         self.colliders = list(colliders or [])
-        self.collision_stage = CollisionStage(self.colliders, free=~m.pinned) if self.colliders else None
+        restore = None
+        if self.params.inextensibility and self.params.collision_inextensibility:
+            restore = lambda x, v, pose, dt: integrator.inextensibility(m, self.params, x, v, pose, dt)  # noqa: E731
+        self.collision_stage = CollisionStage(self.colliders, free=~m.pinned, restore_lengths=restore,
+                                              restore_rounds=max(1, self.params.collision_inextensibility)) \
+            if self.colliders else None
         if self.collision_stage is not None:
             self.stages.append(self.collision_stage)
 
