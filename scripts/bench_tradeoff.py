@@ -272,10 +272,10 @@ def pareto(points: list[tuple[float, float]]) -> list[int]:
 # -------------------------------------------------------------------------------- breakdown
 def profile_setting(raw: dict, setting: dict, frames: int) -> dict:
     """Per-stage ms/frame of one setting from ``torch.profiler`` over ``frames`` frames from the
-    scene's start (after an unrecorded one-frame warm-up run). Keys: ``springs``, ``biphasic``, ``assembly`` (the rest of the
-    assembly), ``solve``, ``inextensibility``, ``hair_hair``, ``collisions``, ``other`` (poses,
-    position updates, divergence guard) and ``total`` (the whole step); a stage that did not run
-    is 0."""
+    scene's start (after an unrecorded one-frame warm-up run). Keys: ``springs``, ``biphasic``,
+    ``assembly`` (the rest of the assembly), ``solve``, ``inextensibility``, ``hair_hair``,
+    ``collisions`` (with its own length-restore rounds), ``other`` (poses, position updates,
+    divergence guard) and ``total`` (the whole step); a stage that did not run is 0."""
     from torch.profiler import ProfilerActivity, profile
 
     run = build_run(raw, setting)
@@ -283,9 +283,15 @@ def profile_setting(raw: dict, setting: dict, frames: int) -> dict:
     with profile(activities=[ProfilerActivity.CPU]) as prof:
         scn.simulate(run, frames=frames)
     total = {}
-    for evt in prof.key_averages():
-        if evt.key.startswith("ams_torch."):
-            total[evt.key[len("ams_torch."):]] = evt.cpu_time_total / 1e3 / frames
+    for evt in prof.events():
+        if not evt.name.startswith("ams_torch."):
+            continue
+        name, parent = evt.name[len("ams_torch."):], evt.cpu_parent
+        while parent is not None and parent.name != "ams_torch.collisions":
+            parent = parent.cpu_parent
+        if parent is not None and name == "inextensibility":
+            continue  # the collision stage's own length restore: counted in collisions
+        total[name] = total.get(name, 0.0) + evt.cpu_time_total / 1e3 / frames
     ms = {k: total.get(k, 0.0) for k in ("springs", "biphasic", "solve", "inextensibility", "hair_hair",
                                          "collisions")}
     ms["assembly"] = max(0.0, total.get("assembly", 0.0) - ms["springs"] - ms["biphasic"])
@@ -323,7 +329,8 @@ def choose_presets(records: list[dict], scenes: list[str], budgets: dict, tol: f
        scene (float32, every stage on), cost = geometric mean over scenes of ms/frame relative to
        the scene's base setting and error = geometric mean of RMS error relative to the base's;
        only points of this aggregated Pareto front are candidates;
-    2. the hair–hair grid (scenes with hair–hair; the grid sweep at the base setting);
+    2. the hair–hair grid (scenes with hair–hair; the grid sweep at the base setting; cost = the
+       base frame with the hair–hair stage's time at that grid, which is less noisy than the total);
     3. the dtype (the dtype sweep at the base setting; geometric means over scenes).
 
     Returns ``{name: {"substeps", "particles", "dtype", "grid", "cost", "error", "budget"}}``
@@ -359,8 +366,12 @@ def choose_presets(records: list[dict], scenes: list[str], budgets: dict, tol: f
         if hh:
             sc = hh[0]
             grids = [r for r in records if r["scene"] == sc and "grid" in r["axes"] and r["rms_error_mm"] is not None]
-            grid = _pick(grids, lambda r: r["ms_per_frame"] / base[sc]["ms_per_frame"],
-                         lambda r: r["rms_error_mm"], b, tol)["settings"]["grid"]
+            b_ms, b_hh = base[sc]["ms_per_frame"], base[sc]["ms_per_stage"].get("hair_hair", 0.0)
+
+            def grid_cost(r):  # the base frame with this grid's hair–hair stage (less noisy than the total)
+                return (b_ms - b_hh + r["ms_per_stage"].get("hair_hair", 0.0)) / b_ms
+
+            grid = _pick(grids, grid_cost, lambda r: r["rms_error_mm"], b, tol)["settings"]["grid"]
         dtype = "float32"
         if dt_pairs:
             opts = [("float32", 1.0, 1.0),
@@ -456,11 +467,24 @@ def run_scene(name: str, args, log) -> tuple:
             e = errors_mm(x, t_ref["x"])
             records[i]["time_rms_error_mm"] = float(f"{e['rms_error_mm']:.5g}")
             records[i]["time_max_error_mm"] = float(f"{e['max_error_mm']:.5g}")
-        log(f"[{name}] time reference {setting_label(t_set)}: " + ", ".join(
-            f"M={records[i]['settings']['substeps']}: {records[i]['time_rms_error_mm']:.3g} mm" for i in kept))
+        log(f"[{name}] time reference {setting_label(t_set)}: " + (", ".join(
+            f"M={records[i]['settings']['substeps']}: {records[i]['time_rms_error_mm']:.3g} mm" for i in kept)
+            if t_ref["x"] is not None else f"diverged: {t_ref['diverged'][:120]}"))
     info["wall_s"] = time.perf_counter() - t0
     info["load_avg_1min_at_end"] = round(os.getloadavg()[0], 2)
     return records, info, ref["x"], subset
+
+
+def votes(info: dict, records: list) -> bool:
+    """Whether a scene takes part in choosing the presets: not if its first-choice reference
+    diverged, nor if its reference checks differ from the reference by more than the default
+    setting's own error (then the reference cannot rank the settings)."""
+    if info["reference_failed"]:
+        return False
+    base = next((r for r in records if r["scene"] == info["scene"] and setting_key(r["settings"])
+                 == setting_key(dict(BASE, grid=BASE["grid"] if r["settings"].get("grid") else None, off=[]))), None)
+    floor = max((c.get("rms_error_mm") or 0.0 for c in info["checks"]), default=0.0)
+    return base is not None and base["rms_error_mm"] is not None and floor < base["rms_error_mm"]
 
 
 def library_presets() -> dict:
@@ -525,20 +549,27 @@ def measure(name: str, raw: dict, s: dict, axes: list, ref_x: torch.Tensor, subs
 
 def run_breakdown(args, presets: dict, log) -> list[dict]:
     """Profiled per-stage ms/frame for each preset in each scene, and for ``balanced`` with each
-    stage of the scene switched off in turn; per label the minimum over ``args.profile_repeats`` runs."""
-    out = []
+    stage of the scene switched off in turn. Every row is profiled ``args.profile_repeats`` times in
+    interleaved passes (so a burst of load from another process hits one pass of a row, not all)
+    and per label the minimum is kept."""
+    rows = []
     for name in args.scenes:
         raw = scene_raw(name, args.frames[name], args.strands.get(name))
         for preset in PRESET_NAMES:
             variants = [[]] + ([[st] for st in scene_stages(raw)] if preset == "balanced" else [])
             for off in variants:
-                s = dict(preset_setting(presets[preset], raw), off=off)
-                runs = [profile_setting(raw, s, args.profile_frames) for _ in range(args.profile_repeats)]
-                ms = {k: min(r[k] for r in runs) for k in runs[0]}  # least disturbed by other processes
-                out.append({"scene": name, "preset": preset, "settings": s,
-                            "ms_per_frame": {k: round(v, 3) for k, v in ms.items()}})
-                log(f"[breakdown {name}] {preset:8s} {'-' + off[0] if off else '':17s} "
-                    + " ".join(f"{k}={v:.1f}" for k, v in ms.items()))
+                rows.append((name, raw, preset, dict(preset_setting(presets[preset], raw), off=off)))
+    runs: list = [[] for _ in rows]
+    for _ in range(args.profile_repeats):
+        for i, (name, raw, preset, s) in enumerate(rows):
+            runs[i].append(profile_setting(raw, s, args.profile_frames))
+    out = []
+    for (name, raw, preset, s), rs in zip(rows, runs):
+        ms = {k: min(r[k] for r in rs) for k in rs[0]}
+        out.append({"scene": name, "preset": preset, "settings": s, "ms_per_frame": {k: round(v, 3) for k, v in ms.items()}})
+        off = s["off"]
+        log(f"[breakdown {name}] {preset:8s} {'-' + off[0] if off else '':17s} "
+            + " ".join(f"{k}={v:.1f}" for k, v in ms.items()))
     return out
 
 
@@ -786,11 +817,16 @@ def write_markdown(path: Path, records, infos, breakdown, chosen, slopes, machin
         es = [e for e in es if e]
         return (es[-1] / es[0]) ** (1 / (len(es) - 1)) if len(es) >= 2 else None
 
+    def _monotone(sc):
+        es = [rms_of(sc, particles=n) for n in sorted(args.particles)]
+        return all(a is not None and b is not None and b <= a for a, b in zip(es, es[1:]))
+
     f.append("**Particles per strand.** RMS error at M = 1 for N = "
              + "/".join(map(str, args.particles)) + ": "
              + "; ".join(f"{sc} " + " / ".join(_fmt(rms_of(sc, particles=n)) for n in args.particles) + " mm"
                          for sc in scenes) + ". Each doubling of N multiplies the error by about "
-             + ", ".join(f"{_doubling(sc):.2f} ({sc})" for sc in scenes if _doubling(sc)) + ". N is not only a "
+             + ", ".join(f"{_doubling(sc):.2f} ({sc}{'' if _monotone(sc) else ', not monotone'})" for sc in scenes
+                         if _doubling(sc)) + ". N is not only a "
              "resolution here: the constants are per particle (spring stiffness per pair, two pinned root particles), "
              "so a finer strand is also a slightly different material.")
     parts = []
@@ -803,10 +839,24 @@ def write_markdown(path: Path, records, infos, breakdown, chosen, slopes, machin
                      + (f"; N = {n_hi}, M = 1 → {best['settings']['substeps']}: {_fmt(rms_of(sc, particles=n_hi))} → "
                         f"{_fmt(best['rms_error_mm'])} mm" if best else ""))
     f.append("**Substeps.** " + "; ".join(parts) + ".")
-    sl = [f"{sc} {d['slope']:.2f}" for sc, d in slopes.items() if d.get("slope") is not None]
-    if sl:
-        f.append("**Against a same-N reference the substeps converge at first order** (backward Euler): log–log "
-                 "slopes " + ", ".join(sl) + " (see *Convergence in substeps*).")
+    first = [f"{sc} {d['slope']:.2f}" for sc, d in slopes.items() if d.get("slope") is not None
+             and -1.4 <= d["slope"] <= -0.7]
+    other = [f"{sc} {d['slope']:.2f}" for sc, d in slopes.items() if d.get("slope") is not None
+             and not -1.4 <= d["slope"] <= -0.7]
+    if first or other:
+        f.append(("**Against a same-N reference the substeps converge at first order** (backward Euler) in "
+                  + ", ".join(first) + " (log–log slopes)" if first else "")
+                 + ("; " if first and other else "")
+                 + (f"**not in {', '.join(other)}**, where the differences between runs do not shrink with M"
+                    if other else "") + " (see *Convergence in substeps*).")
+    for i in infos:
+        checks = [c for c in i["checks"] if c.get("rms_error_mm") is not None]
+        if checks:
+            f.append(f"**The {i['scene']} reference is converged to about {max(c['rms_error_mm'] for c in checks):.3g} mm "
+                     "RMS** (" + ", ".join(f"{setting_label(c['settings'])}: {c['rms_error_mm']:.3g} mm" for c in checks)
+                     + "); errors below that are not resolved"
+                     + ("" if votes(i, records) else ", and it is more than the default setting's error, so this scene "
+                        "does not vote on the presets") + ".")
     dts = []
     for sc in scenes:
         a, b = rms_of(sc), rms_of(sc, dtype="float64")
@@ -837,7 +887,8 @@ def write_markdown(path: Path, records, infos, breakdown, chosen, slopes, machin
         offs = [r for r in (_find(records, sc, off=[st]) for st in STAGES) if r is not None]
         if base and offs and base["rms_error_mm"] is not None:
             f.append(f"**Stages ({sc})**, each switched off at the default setting (RMS {base['rms_error_mm']:.3g} mm, "
-                     f"{base['ms_per_frame']:.1f} ms/frame): " + ", ".join(
+                     f"{base['ms_per_frame']:.1f} ms/frame; one run each, so the ms are noisy: the profiled "
+                     "breakdown below compares costs better): " + ", ".join(
                          f"−{r['settings']['off'][0]}: RMS {_fmt(r['rms_error_mm'])} mm, "
                          f"{_fmt(r['ms_per_frame'])} ms" if r["rms_error_mm"] is not None else
                          f"−{r['settings']['off'][0]}: diverged" for r in offs) + ".")
@@ -846,11 +897,12 @@ def write_markdown(path: Path, records, infos, breakdown, chosen, slopes, machin
         nocol = _find(records, sc, off=["collisions"])
         if base and nocol and base.get("max_stretch") is not None and nocol.get("max_stretch") is not None \
                 and base["max_stretch"] > 0.1:
-            f.append(f"**Collisions stretch the hair ({sc})**: the largest edge-length error at the end of a frame "
-                     f"is {base['max_stretch']:.3g} (relative) with head collisions and {nocol['max_stretch']:.2g} "
-                     "without: the collision stage runs after inextensibility (SPEC §4) and projects particles out "
-                     "of the head without restoring edge lengths, so fast hair–head contact leaves stretched edges "
-                     "that the next frame's stiff springs then fight.")
+            rounds = at.Params().collision_inextensibility if hasattr(at.Params(), "collision_inextensibility") else 0
+            f.append(f"**Contact stretches the hair ({sc})**: the largest relative edge-length error at the end of a "
+                     f"frame is {base['max_stretch']:.3g} with head collisions and {nocol['max_stretch']:.2g} without "
+                     f"(the collision stage runs after inextensibility, SPEC §4, followed by {rounds} round(s) of "
+                     "length restore + push-out, `Params.collision_inextensibility`), so fast hair–head contact still "
+                     "leaves stretched edges for the next frame's stiff springs.")
     for i in infos:
         for fail in i.get("reference_failed", []):
             f.append(f"**The {i['scene']} reference at {setting_label(fail['settings'])} diverged** "
@@ -872,8 +924,10 @@ def write_markdown(path: Path, records, infos, breakdown, chosen, slopes, machin
           "`choose_presets` in the script, on this run's data"
           + (f" of the scenes {', '.join(chosen.get('_scenes', scenes))}" if chosen.get("_scenes", scenes) != scenes
              else "")
-          + (" (a scene whose reference diverged does not vote: " + ", ".join(sorted(set(scenes)
-             - set(chosen.get("_scenes", scenes)))) + ")" if chosen.get("_scenes", scenes) != scenes else "")
+          + (" (" + ", ".join(sorted(set(scenes) - set(chosen.get("_scenes", scenes))))
+             + " does not vote: a scene votes only if its reference did not diverge and its reference checks "
+             "differ from it by less than the default setting's error)" if chosen.get("_scenes", scenes) != scenes
+             else "")
           + ". Each preset has a cost budget ("
           + ", ".join(f"`{p}` ≤ {args.budgets[p]:g}×" for p in PRESET_NAMES)
           + " the cost of the library default M = 1, N = 32, float32, 64³ grid) and takes, on each axis, the "
@@ -883,7 +937,9 @@ def write_markdown(path: Path, records, infos, breakdown, chosen, slopes, machin
           "cost = geometric mean over the scenes of ms/frame relative to the scene's default and error = geometric "
           "mean of RMS error relative to the default's; the candidates are the points of this aggregated Pareto "
           "front (table below).",
-          "2. The hair–hair grid: the grid sweep of the head scene (at M = 1, N = 32).",
+          "2. The hair–hair grid: the grid sweep of the head scene (at M = 1, N = 32); its cost is the default "
+          "frame with the hair–hair stage's measured time at that grid (the rest of the frame is the same work, "
+          "and its timing noise would otherwise decide).",
           "3. The dtype: the dtype sweep (geometric mean over the scenes).", "",
           "| M | N | cost (× default) | error (× default) | on the front | preset |", "|---:|---:|---:|---:|---|---|"]
     front_keys = {(x["substeps"], x["particles"]) for x in chosen["_front"]}
@@ -914,8 +970,9 @@ def write_markdown(path: Path, records, infos, breakdown, chosen, slopes, machin
     L += ["", "RMS error in mm. "
           + (f"Against the same-N time reference the error falls at first order in {', '.join(first)}, as backward "
              "Euler should (slope ≈ −1; `tests/test_tradeoff.py` checks this on a small wisp). " if first else "")
-          + (f"It does not in {', '.join(other)}: there the run-to-run differences are dominated by what happens "
-             "once per frame, whatever M is (see the findings above). " if other else "")
+          + (f"It does not in {', '.join(other)}: there the differences between runs hardly shrink with M, most "
+             "likely because the once-per-frame stages (contact, plastic yield of the non-Hookean integrity, "
+             "inextensibility) dominate them. " if other else "")
           + "Against the full reference the error stops falling after a few substeps: there the error of N = 32 "
           "particles dominates, and no number of substeps removes it.", ""]
 
@@ -1060,8 +1117,7 @@ def main(argv=None) -> None:
         refs[sc] = (ref_x, subset)
         loads.append((f"after {sc}", info["load_avg_1min_at_end"]))
         log(f"[{sc}] done in {info['wall_s']:.0f} s")
-    # a scene whose reference diverged cannot rank settings: it does not vote on the presets
-    select = [i["scene"] for i in infos if not i["reference_failed"]] or list(args.scenes)
+    select = [i["scene"] for i in infos if votes(i, records)] or list(args.scenes)
     chosen = choose_presets(records, select, args.budgets)
     chosen["_scenes"] = select
     presets = {p: {k: chosen[p][k] for k in ("substeps", "particles", "dtype", "grid")} for p in PRESET_NAMES}
