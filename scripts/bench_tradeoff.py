@@ -36,9 +36,10 @@ a frame for each preset (``torch.profiler`` on the ``ams_torch.*`` labels of
 :mod:`ams_torch.integrator` and :func:`ams_torch.scene.simulate`), with each stage switched off
 in turn.
 
-Writes ``docs/tradeoff.json`` (``{"records": [...], "meta": {...}}``, one record per setting:
+Writes ``docs/tradeoff.json`` (a list with one record per setting:
 ``scene``, ``settings``, ``ms_per_frame``, ``rms_error_mm``, ``max_error_mm``,
-``shape_error_mm``, ...), ``docs/tradeoff.md``, ``docs/tradeoff_pareto.png`` and
+``shape_error_mm``, ...; the run's metadata rides at the end of tradeoff.md in an HTML comment),
+``docs/tradeoff.md``, ``docs/tradeoff_pareto.png`` and
 ``docs/tradeoff_convergence.png``. ms/frame is wall time on one torch thread (``--threads``).
 
     python scripts/bench_tradeoff.py                  # default sizes, ~20 min on 2 cores
@@ -588,6 +589,8 @@ def convergence_slopes(records: list[dict], infos: list[dict]) -> dict:
         d = {"substeps": [r["settings"]["substeps"] for r in rs], "rms_error_mm": [r["rms_error_mm"] for r in rs],
              "time_rms_error_mm": [r.get("time_rms_error_mm") for r in rs], "slope": None, "fit_substeps": []}
         m_time = info.get("time_reference", {}).get("substeps")
+        if m_time:  # at M = M_time the run is the time reference up to float32 round-off: not a measurement
+            d["time_rms_error_mm"] = [e if m < m_time else None for m, e in zip(d["substeps"], d["time_rms_error_mm"])]
         fit = [(m, e) for m, e in zip(d["substeps"], d["time_rms_error_mm"]) if e and m_time and m <= m_time / 4]
         if len(fit) >= 2:
             d["slope"] = float(np.polyfit(np.log([f[0] for f in fit]), np.log([f[1] for f in fit]), 1)[0])
@@ -693,7 +696,7 @@ def plot_convergence(slopes: dict, path: Path) -> None:
     firsts = [(d["substeps"][0], d["time_rms_error_mm"][0]) for d in slopes.values() if d["time_rms_error_mm"][0]]
     if firsts:
         m = np.array(next(iter(slopes.values()))["substeps"], dtype=float)
-        top = max(e for _, e in firsts)
+        top = min(e for _, e in firsts)
         ax.plot(m, top / m, "k--", lw=0.8, label="slope −1")
     _log_axes(ax)
     if slopes:
@@ -940,8 +943,13 @@ def write_markdown(path: Path, records, infos, breakdown, chosen, slopes, machin
           "2. The hair–hair grid: the grid sweep of the head scene (at M = 1, N = 32); its cost is the default "
           "frame with the hair–hair stage's measured time at that grid (the rest of the frame is the same work, "
           "and its timing noise would otherwise decide).",
-          "3. The dtype: the dtype sweep (geometric mean over the scenes).", "",
-          "| M | N | cost (× default) | error (× default) | on the front | preset |", "|---:|---:|---:|---:|---|---|"]
+          "3. The dtype: the dtype sweep (geometric mean over the scenes).", ""]
+    near = [f"({x['substeps']}, {x['particles']}) at {x['cost']:.2f}× against `{p}`'s {args.budgets[p]:g}×"
+            for x in chosen["_front"] for p in PRESET_NAMES if abs(x["cost"] / args.budgets[p] - 1) <= 0.25]
+    if near:
+        L += ["Timings on this shared machine vary by 20–30 % between runs, so a front point whose cost lies within "
+              "25 % of a budget can fall on either side of it in a rerun: " + "; ".join(near) + ".", ""]
+    L += ["| M | N | cost (× default) | error (× default) | on the front | preset |", "|---:|---:|---:|---:|---|---|"]
     front_keys = {(x["substeps"], x["particles"]) for x in chosen["_front"]}
     for pt in chosen["_points"]:
         k = (pt["substeps"], pt["particles"])
@@ -985,7 +993,10 @@ def write_markdown(path: Path, records, infos, breakdown, chosen, slopes, machin
           "`biphasic`: integrity and angular couplings; `assembly`: the rest of the system assembly; `solve`: the "
           "banded solve; `other`: pose interpolation, position updates, divergence guard. The `balanced` rows with "
           "a stage switched off show that the stage's cost goes to 0 (`biphasic` off is plain MS; `guard` off is "
-          "`check_every = 0`).", ""]
+          "`check_every = 0`). `collisions` includes the collision stage's own length-restore rounds "
+          "(`Params.collision_inextensibility`), which run only with inextensibility on: hence its smaller cost in "
+          "the `−inextensibility` rows. Rows were profiled minutes apart on a shared machine, so compare a stage "
+          "across rows rather than the totals.", ""]
     cols = ("springs", "biphasic", "assembly", "solve", "inextensibility", "hair_hair", "collisions", "other", "total")
     for sc in scenes:
         L += [f"**{sc}**", "", "| preset | switched off | " + " | ".join(cols) + " |",
@@ -1092,7 +1103,10 @@ def main(argv=None) -> None:
 
     if args.render_only:
         data = json.loads((out / "tradeoff.json").read_text())
-        records, meta = data["records"], data["meta"]
+        if isinstance(data, dict):  # older layout: {"records": [...], "meta": {...}}
+            records, meta = data["records"], data["meta"]
+        else:
+            records, meta = data, read_meta(out / "tradeoff.md")
         for k, v in meta["args"].items():
             setattr(args, k, {kk: tuple(tuple(x) for x in vv) for kk, vv in v.items()} if k == "joint" else v)
         _write_outputs(out, records, meta["scenes"], meta["breakdown"], meta["presets_chosen"], meta["machine"], args,
@@ -1137,7 +1151,7 @@ def main(argv=None) -> None:
             "presets_library": library_presets(), "convergence": slopes, "breakdown": breakdown,
             "args": {k: getattr(args, k) for k in ("substeps", "particles", "dtypes", "grids", "joint", "budgets",
                                                    "profile_frames", "profile_repeats", "note")}}
-    (out / "tradeoff.json").write_text(json.dumps({"records": records, "meta": meta}, indent=1) + "\n")
+    (out / "tradeoff.json").write_text("[\n" + ",\n".join(json.dumps(r) for r in records) + "\n]\n")
     _write_outputs(out, records, infos, breakdown, chosen, machine, args, wall, loads, meta)
     lib = library_presets()
     for p in PRESET_NAMES:
@@ -1146,13 +1160,26 @@ def main(argv=None) -> None:
     log(f"wrote {out / 'tradeoff.md'}, tradeoff.json, tradeoff_pareto.png, tradeoff_convergence.png in {wall / 60:.1f} min")
 
 
+META_TAG = "bench_tradeoff meta (read by --render-only):"
+
+
+def read_meta(md: Path) -> dict:
+    """The run's metadata from the HTML comment at the end of tradeoff.md."""
+    text = md.read_text()
+    start = text.rindex("<!-- " + META_TAG) + len("<!-- " + META_TAG)
+    return json.loads(text[start:text.index("-->", start)])
+
+
 def _write_outputs(out: Path, records, infos, breakdown, chosen, machine, args, wall, loads, meta) -> None:
     scenes = [i["scene"] for i in infos]
     plot_pareto(records, scenes, out / "tradeoff_pareto.png")
     slopes = convergence_slopes(records, infos)
     plot_convergence(slopes, out / "tradeoff_convergence.png")
-    write_markdown(out / "tradeoff.md", records, infos, breakdown, chosen, slopes, machine, args, wall, loads,
-                   meta["command"])
+    path = out / "tradeoff.md"
+    write_markdown(path, records, infos, breakdown, chosen, slopes, machine, args, wall, loads, meta["command"])
+    # "--" cannot occur in an HTML comment; outside JSON strings it cannot occur at all
+    blob = json.dumps(meta).replace("--", "-\\u002d")
+    path.write_text(path.read_text() + f"\n<!-- {META_TAG} {blob} -->\n")
 
 
 if __name__ == "__main__":

@@ -284,6 +284,7 @@ def plot_compare(records, args, path: Path) -> None:
 
 
 def _range_text(values, fmt) -> str:
+    """Comma-separated ``fmt(v)`` of the values."""
     return ", ".join(fmt(v) for v in values)
 
 
@@ -310,6 +311,7 @@ def region_lines(cells: dict, category: str, args) -> list[str]:
 
 
 def unstable_lines(records, args, inext: bool, kb: float) -> list[str]:
+    """Markdown lines listing, per acceleration and κ_L, the dts (and criteria) of unstable cells."""
     lines = []
     for a_g in args.accels:
         per_kl = []
@@ -350,6 +352,7 @@ def stable_region(records, args, inext: bool, kb: float, a_g: float) -> str:
 
 
 def machine_info() -> dict:
+    """CPU model, cores, torch version and threads, and the 1-minute load average now."""
     cpu = platform.processor() or platform.machine()
     try:
         with open("/proc/cpuinfo") as f:
@@ -398,9 +401,17 @@ def summary_lines(records, probes, args) -> list[str]:
             ps = [p for p in probes if all(p[k] == r[k] for k in ("stretch_stiffness", "biphasic_stiffness", "dt",
                                                                     "accel_g", "model"))]
             if ps:
-                out.append(f"  Rerun of {_cell_text(r)} with `ftl_damping` "
-                           + ", ".join(f"{p['ftl_damping']:g}: {p['status']} (peak {p['peak_ke_j_per_kg']:g} J/kg)"
-                                       for p in ps) + f" (library default {r.get('ftl_damping', 0.9):g}: {r['status']}).")
+                def probe_text(p):
+                    what = {0.0: "plain FTL velocities", 1.0: "full Müller correction"}.get(p["ftl_damping"], "")
+                    # a strand falling its own length (0.25 m) gains g·L ≈ 2.5 J/kg: far above that it is not at rest
+                    calm = p["peak_ke_j_per_kg"] <= 10 * G * 0.25
+                    verdict = (f"{p['status']}, peak {p['peak_ke_j_per_kg']:.2g} J/kg" if calm or p["status"] != "stable"
+                               else f"no growth, but {p['peak_ke_j_per_kg']:.3g} J/kg from the first frames on (`stable` "
+                                    "by the criteria, yet the strand never comes to rest)")
+                    return f"`ftl_damping = {p['ftl_damping']:g}` ({what}): {verdict}"
+                out.append(f"  Rerun of {_cell_text(r)}: " + "; ".join(probe_text(p) for p in ps)
+                           + f"; library default `ftl_damping = {r.get('ftl_damping', 0.9):g}`: {r['status']}, "
+                           f"peak {r['peak_ke_j_per_kg']:.3g} J/kg.")
     for inext in (True, False):
         cells = compare_cells(records, args, inext, args.compare_kb)
         ams_only = [k for k, c in cells.items() if c == "AMS only"]
@@ -513,6 +524,27 @@ def write_markdown(path: Path, records, args, machine, wall_s, loads, command: s
     path.write_text("\n".join(L))
 
 
+CELL_COLUMNS = ("model", "inextensibility", "stretch_stiffness", "biphasic_stiffness", "dt", "accel_g", "frames",
+                "status", "ftl_damping", "max_stretch", "ke_growth", "peak_ke_j_per_kg", "first_nan_frame")
+
+
+def dump_cells(records: list, meta: dict) -> str:
+    """stability.json: ``{"meta": {...}, "columns": [...], "rows": [[...], ...]}``, one row per cell
+    (columns ``CELL_COLUMNS``; stiffness in s⁻² for unit mass, dt in s, acceleration in g, kinetic
+    energy in J/kg, stretch relative)."""
+    rows = ",\n".join(json.dumps([r.get(c) for c in CELL_COLUMNS]) for r in records)
+    return ('{"meta": ' + json.dumps(meta) + ',\n"columns": ' + json.dumps(list(CELL_COLUMNS))
+            + ',\n"rows": [\n' + rows + "\n]}\n")
+
+
+def load_cells(path: Path) -> dict:
+    """Read stability.json back: ``{"meta": {...}, "records": [dict per cell]}``."""
+    data = json.loads(path.read_text())
+    if "records" in data:
+        return data
+    return {"meta": data["meta"], "records": [dict(zip(data["columns"], row)) for row in data["rows"]]}
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="smoke run: a coarse grid, 0.2 s; output under out/stability_quick")
@@ -540,7 +572,7 @@ def main(argv=None) -> None:
     out = args.out or (REPO / "out" / "stability_quick" if q else REPO / "docs")
     out.mkdir(parents=True, exist_ok=True)
     if args.render_only:
-        data = json.loads((out / "stability.json").read_text())
+        data = load_cells(out / "stability.json")
         meta, grid = data["meta"], data["meta"]["grid"]
         args.stiffness, args.dts, args.accels = grid["stretch_stiffness"], grid["dt"], grid["accel_g"]
         args.biphasic = [kb for kb in grid["biphasic_stiffness"] if kb != 0]
@@ -586,8 +618,7 @@ def main(argv=None) -> None:
                      "accel_g": args.accels, "duration_s": args.duration, "frequency_hz": args.frequency,
                      "strands": args.strands, "particles": args.particles, "dtype": args.dtype,
                      "growth": args.growth, "max_stretch": args.max_stretch}, "probes": probes}
-    (out / "stability.json").write_text('{"meta": ' + json.dumps(meta) + ',\n"records": [\n'
-                                        + ",\n".join(json.dumps(r) for r in records) + "\n]}\n")
+    (out / "stability.json").write_text(dump_cells(records, meta))
     _write(out, records, args, machine, wall, loads, meta["command"], probes)
     print(f"wrote {out / 'stability.md'}, stability.json and the maps in {wall / 60:.1f} min")
 
