@@ -10,7 +10,7 @@ from typing import Callable, Tuple
 
 import torch
 
-__all__ = ["machine_info", "machine", "sync", "median_ms"]
+__all__ = ["machine_info", "machine", "sync", "median_ms", "shown_args"]
 
 
 def machine_info(device="cpu") -> dict:
@@ -69,3 +69,21 @@ def median_ms(fn: Callable[[], object], device="cpu", repeats: int = 5, time_cap
         sync(device)
         times.append(time.perf_counter() - t0)
     return statistics.median(times) * 1e3, n
+
+
+def shown_args(argv=None, hide=("--note", "--out")) -> str:
+    """The command-line arguments as one string, without the options in ``hide`` and their
+    values (``--note`` text is printed apart; an output folder is no part of the setting)."""
+    import sys
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    shown, i = [], 0
+    while i < len(argv):
+        a = argv[i]
+        if a in hide:
+            i += 2
+            continue
+        if not any(a.startswith(h + "=") for h in hide):
+            shown.append(a)
+        i += 1
+    return " ".join(shown)

@@ -33,7 +33,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from ams_torch._bench import machine, machine_info  # noqa: E402
+from ams_torch._bench import machine, machine_info, shown_args  # noqa: E402
 from ams_torch.data import HairSequenceDataset  # noqa: E402
 from ams_torch.datagen import generate  # noqa: E402
 from ams_torch.recipe import parse_recipe  # noqa: E402
@@ -160,17 +160,7 @@ def main() -> None:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     records["seconds"] = time.perf_counter() - t_start
-    argv, skip = [], False
-    for a in sys.argv[1:]:  # the command line without the --note text
-        if skip:
-            skip = False
-            continue
-        if a in ("--note", "--out"):
-            skip = True
-            continue
-        if not a.startswith(("--note=", "--out=")):
-            argv.append(a)
-    records["argv"] = "".join(" " + a for a in argv)
+    records["argv"] = (" " + shown_args()) if shown_args() else ""
     records["load_avg_1min_at_end"] = round(os.getloadavg()[0], 2)
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "datasets.json"), "w") as f:

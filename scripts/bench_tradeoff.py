@@ -53,7 +53,6 @@ import copy
 import json
 import math
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -65,6 +64,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 import ams_torch as at  # noqa: E402
+from ams_torch._bench import machine_info, shown_args  # noqa: E402
 from ams_torch import scene as scn  # noqa: E402
 from ams_torch.constraints import max_stretch  # noqa: E402
 from ams_torch.params import PARAM_PRESETS  # noqa: E402
@@ -394,18 +394,6 @@ def _base_grid(records: list[dict], scene: str):
 
 
 # ------------------------------------------------------------------------------------- runs
-def machine_info() -> dict:
-    """CPU model, cores, torch version and threads, and the 1-minute load average now."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    return {"cpu": cpu, "cpu_cores": os.cpu_count(), "torch": torch.__version__, "threads": torch.get_num_threads(),
-            "load_avg_1min_at_start": round(os.getloadavg()[0], 2)}
-
-
 def _subset(raw: dict, count: int | None):
     strands = int(raw["groom"].get("strands", 1))
     if has_stage(raw, "hair_hair") or not count or count >= strands:
@@ -729,18 +717,6 @@ def _find(records, scene, **kw):
         if setting_key(s) == setting_key(want):
             return r
     return None
-
-
-def _shown_args() -> str:
-    argv, shown, i = sys.argv[1:], [], 0
-    while i < len(argv):
-        if argv[i] == "--note":
-            i += 2
-            continue
-        if not argv[i].startswith("--note="):
-            shown.append(argv[i])
-        i += 1
-    return " ".join(shown)
 
 
 SCENE_TEXT = {
@@ -1146,7 +1122,7 @@ def main(argv=None) -> None:
     slopes = convergence_slopes(records, infos)
     wall = time.perf_counter() - t_start
     loads.append(("at the end", round(os.getloadavg()[0], 2)))
-    meta = {"command": f"python scripts/bench_tradeoff.py {_shown_args()}".strip(), "wall_s": round(wall, 1),
+    meta = {"command": f"python scripts/bench_tradeoff.py {shown_args(hide=('--note',))}".strip(), "wall_s": round(wall, 1),
             "machine": machine, "load_avg_1min": loads, "scenes": infos, "presets_chosen": chosen,
             "presets_library": library_presets(), "convergence": slopes, "breakdown": breakdown,
             "args": {k: getattr(args, k) for k in ("substeps", "particles", "dtypes", "grids", "joint", "budgets",

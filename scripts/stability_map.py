@@ -37,7 +37,6 @@ import argparse
 import json
 import math
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -49,6 +48,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 import ams_torch as at  # noqa: E402
+from ams_torch._bench import machine_info, shown_args  # noqa: E402
 from ams_torch.constraints import max_stretch  # noqa: E402
 from ams_torch.testing import shake_poses, sphere_groom  # noqa: E402
 
@@ -351,22 +351,6 @@ def stable_region(records, args, inext: bool, kb: float, a_g: float) -> str:
     return "; ".join(f"{_dt_label(dt)}: " + ("none" if t is None else f"≥ {_kl_text(t)}") for dt, t in thresholds.items())
 
 
-def machine_info() -> dict:
-    """CPU model, cores, torch version and threads, and the 1-minute load average now."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    return {"cpu": cpu, "cpu_cores": os.cpu_count(), "torch": torch.__version__, "threads": torch.get_num_threads(),
-            "load_avg_1min_at_start": round(os.getloadavg()[0], 2)}
-
-
-def _shown_args() -> str:
-    return " ".join(sys.argv[1:])
-
-
 def _cell_text(r) -> str:
     """``MS, κ_L/m = 1e7, dt = 1/1000, 0 g`` for one cell record."""
     model = "MS" if r["model"] == "MS" else "AMS κ_I = κ_α = {:g}".format(r["biphasic_stiffness"])
@@ -612,7 +596,7 @@ def main(argv=None) -> None:
                   f"(KE growth {pr['ke_growth']}, peak {pr['peak_ke_j_per_kg']} J/kg)", flush=True)
     wall = time.perf_counter() - t0
     loads.append(("at the end", round(os.getloadavg()[0], 2)))
-    meta = {"command": f"python scripts/stability_map.py {_shown_args()}".strip(), "wall_s": round(wall, 1),
+    meta = {"command": f"python scripts/stability_map.py {shown_args(hide=('--note',))}".strip(), "wall_s": round(wall, 1),
             "machine": machine, "load_avg_1min": loads,
             "grid": {"stretch_stiffness": args.stiffness, "dt": args.dts, "biphasic_stiffness": [0.0] + args.biphasic,
                      "accel_g": args.accels, "duration_s": args.duration, "frequency_hz": args.frequency,
