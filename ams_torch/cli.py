@@ -150,10 +150,7 @@ def _cmd_simulate(args) -> int:
     final = write_final(os.path.join(args.out, "final.npz"), result, run.rest)
     print(f"wrote {final}")
     seq = read_sequence(h5)
-    png = _render({**seq, "positions": seq["positions"][-1:],
-                   **{k: seq[k][-1:] for k in ("rotations", "translations", "collider_rotations",
-                                               "collider_translations") if k in seq}},
-                  scene, os.path.join(args.out, "final.png"))
+    png = _render(seq, scene, os.path.join(args.out, "final.png"))  # a .png path draws the last frame
     print(f"wrote {png}")
     if not args.no_video:
         video = _render(seq, scene, os.path.join(args.out, "video.mp4"), progress=not args.quiet)

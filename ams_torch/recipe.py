@@ -88,7 +88,7 @@ def is_sampler(v) -> bool:
 
 def _check_samplers(v, where: str, key: str) -> None:
     """Check every sampler inside v (tables, lists) is well formed."""
-    if isinstance(v, dict) and len(v) == 1 and next(iter(v)) in SAMPLERS:
+    if is_sampler(v):
         kind, arg = next(iter(v.items()))
         if kind == "choice":
             if not isinstance(arg, list) or not arg:
@@ -222,14 +222,17 @@ class Recipe:
         return [g for g in range(self.num_groups) if g % num_shards == shard]
 
     # -- random draws ---------------------------------------------------------------------
-    def rng(self, kind: int, index: int) -> np.random.Generator:
+    def _seed_sequence(self, kind: int, index: int) -> np.random.SeedSequence:
         entropy = [int(self.hash[:16], 16), int(self.raw.get("seed", 0))]
-        return np.random.default_rng(np.random.SeedSequence(entropy, spawn_key=(kind, index)))
+        return np.random.SeedSequence(entropy, spawn_key=(kind, index))
+
+    def rng(self, kind: int, index: int) -> np.random.Generator:
+        """The random stream of a batch group (kind 0) or a sequence (kind 1)."""
+        return np.random.default_rng(self._seed_sequence(kind, index))
 
     def sequence_seed(self, i: int) -> int:
         """A 63-bit integer identifying sequence i's random stream (stored with the sequence)."""
-        return int(np.random.SeedSequence([int(self.hash[:16], 16), int(self.raw.get("seed", 0))],
-                                          spawn_key=(_SEQUENCE, i)).generate_state(2, np.uint64)[0] >> np.uint64(1))
+        return int(self._seed_sequence(_SEQUENCE, i).generate_state(1, np.uint64)[0] >> np.uint64(1))
 
     def group_spec(self, g: int) -> Dict[str, Any]:
         """The draws of batch group g: concrete ``groom`` and ``params`` tables (JSON-friendly)."""
@@ -293,8 +296,6 @@ class Recipe:
             scene["wind"] = first["wind"]
         try:
             return parse_scene(scene, where=f"{self.where} (group {g})", base=self.base)
-        except RecipeError:
-            raise
         except SceneError as err:
             raise RecipeError(str(err)) from None
 
@@ -337,7 +338,7 @@ def parse_recipe(raw: dict, where: str = "recipe", base: str = ".") -> Recipe:
         _fail(where, f"dtype must be 'float32' or 'float64'; got {raw.get('dtype')!r}")
     for key in ("head", "stages", "hair_hair", "dt", "substeps", "colliders", "frames", "batch", "seed",
                 "sequences", "dtype"):
-        if key in raw and (is_sampler(raw[key]) or _has_sampler(raw[key])):
+        if key in raw and _has_sampler(raw[key]):
             _fail(where, f"{key} is fixed for a whole dataset; samplers are allowed in [groom], [params], "
                          f"[motion] and [wind]")
     for key in ("groom", "params", "motion", "wind"):

@@ -58,7 +58,7 @@ class Simulator(torch.nn.Module):
         if self.params.inextensibility and self.params.collision_inextensibility:
             restore = lambda x, v, pose, dt: integrator.inextensibility(m, self.params, x, v, pose, dt)  # noqa: E731
         self.collision_stage = CollisionStage(self.colliders, free=~m.pinned, restore_lengths=restore,
-                                              restore_rounds=max(1, self.params.collision_inextensibility)) \
+                                              restore_rounds=self.params.collision_inextensibility) \
             if self.colliders else None
         if self.collision_stage is not None:
             self.stages.append(self.collision_stage)

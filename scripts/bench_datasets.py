@@ -52,7 +52,7 @@ def bench_recipe(strands: int, particles: int, frames: int, sequences: int, batc
     }
 
 
-def restore(src: str, dst: str, precision: str, compression: str) -> None:
+def copy_with_storage(src: str, dst: str, precision: str, compression: str) -> None:
     """Copy a dataset file, rewriting the per-frame arrays with other storage settings."""
     filters = {} if compression == "none" else {"compression": compression, "shuffle": True}
     dtype = np.float16 if precision == "float16" else np.float32
@@ -147,7 +147,7 @@ def main() -> None:
         for prec, comp in (("float16", "gzip"), ("float32", "lzf"), ("float32", "none")):
             d = os.path.join(tmp, f"{prec}-{comp}")
             os.makedirs(d)
-            restore(src, os.path.join(d, os.path.basename(src)), prec, comp)
+            copy_with_storage(src, os.path.join(d, os.path.basename(src)), prec, comp)
             variants[f"{prec} + {comp}"] = d
         for label, folder in variants.items():
             size = sum(os.path.getsize(os.path.join(folder, n)) for n in os.listdir(folder) if n.endswith(".h5"))

@@ -177,6 +177,17 @@ def _dt_label(dt: float) -> str:
     return f"1/{round(1 / dt)}"
 
 
+def _map_axes(ax, args, xlabel: bool) -> None:
+    """Ticks of a (κ_L/m, dt) stability map: decades of κ_L on y, the dts on x."""
+    ax.set_yticks(range(len(args.stiffness)))
+    ax.set_yticklabels([f"{kl:.0e}".replace("e+0", "e") if (math.log10(kl) % 1) == 0 else ""
+                        for kl in args.stiffness], fontsize=6)
+    ax.set_xticks(range(len(args.dts)))
+    ax.set_xticklabels([_dt_label(dt) for dt in args.dts], fontsize=6, rotation=90)
+    if xlabel:
+        ax.set_xlabel("dt (s), M = 1", fontsize=7)
+
+
 def plot_maps(records, args, inextensibility: bool, path: Path) -> None:
     """Rows: accelerations; columns: biphasic stiffness (0 = MS); each panel κ_L (y) × dt (x)."""
     import matplotlib
@@ -205,13 +216,7 @@ def plot_maps(records, args, inextensibility: bool, path: Path) -> None:
                 ax.set_title("MS (κ_I = κ_α = 0)" if kb == 0 else f"AMS κ_I = κ_α = {kb:g}", fontsize=8)
             if j == 0:
                 ax.set_ylabel(f"{a_g:g} g\nκ_L/m (s⁻²)", fontsize=8)
-            ax.set_yticks(range(len(args.stiffness)))
-            ax.set_yticklabels([f"{kl:.0e}".replace("e+0", "e") if (math.log10(kl) % 1) == 0 else ""
-                                for kl in args.stiffness], fontsize=6)
-            ax.set_xticks(range(len(args.dts)))
-            ax.set_xticklabels([_dt_label(dt) for dt in args.dts], fontsize=6, rotation=90)
-            if i == len(args.accels) - 1:
-                ax.set_xlabel("dt (s), M = 1", fontsize=7)
+            _map_axes(ax, args, xlabel=i == len(args.accels) - 1)
     fig.legend(handles=[Patch(color=STATUS_COLORS[s], label=s) for s in STATUSES], loc="lower center",
                ncol=len(STATUSES), fontsize=8, frameon=False)
     fig.suptitle(f"Stability, inextensibility {'on (library default)' if inextensibility else 'off (springs alone)'}; "
@@ -268,13 +273,7 @@ def plot_compare(records, args, path: Path) -> None:
                 ax.set_title(f"{a_g:g} g", fontsize=9)
             if j == 0:
                 ax.set_ylabel(f"inextensibility {'on' if inext else 'off'}\nκ_L/m (s⁻²)", fontsize=8)
-            ax.set_yticks(range(len(args.stiffness)))
-            ax.set_yticklabels([f"{kl:.0e}".replace("e+0", "e") if (math.log10(kl) % 1) == 0 else ""
-                                for kl in args.stiffness], fontsize=6)
-            ax.set_xticks(range(len(args.dts)))
-            ax.set_xticklabels([_dt_label(dt) for dt in args.dts], fontsize=6, rotation=90)
-            if i == 1:
-                ax.set_xlabel("dt (s), M = 1", fontsize=7)
+            _map_axes(ax, args, xlabel=i == 1)
     fig.legend(handles=[Patch(color=c, label=l) for c, l in zip(COMPARE_COLORS, COMPARE)], loc="lower center",
                ncol=4, fontsize=8, frameon=False)
     fig.suptitle(f"AMS (κ_I = κ_α = {args.compare_kb:g}) against plain MS", fontsize=9)
