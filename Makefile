@@ -19,7 +19,7 @@ $(STAMP): pyproject.toml Makefile
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m ams_torch.cli simulate datasets/scenes/default.toml --out out/demo
+	$(PY) -m ams_torch simulate datasets/scenes/default.toml --out out/demo
 
 test: $(STAMP)
 	$(PY) -m pytest -q -ra

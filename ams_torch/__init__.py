@@ -1,40 +1,39 @@
 """ams_torch: dense hair simulation with the Augmented Mass-Spring model in PyTorch.
 
-The public API is small:
+The names a first simulation needs::
 
-- :class:`Params`: the model's parameters (SI units).
-- :class:`Simulator`: ``Simulator(rest_positions, params).initial_state()`` / ``.step(state, pose)``.
-- :class:`Pose`: a rigid head pose with its velocities.
-- :func:`solve_banded`: the batched banded block-Cholesky strand solve.
-- :class:`HairHair`: hair–hair interaction settings (``Simulator(..., hair_hair=HairHair())``).
-- :func:`default_head`, :class:`SDFGrid` and the colliders (``Simulator(..., colliders=[...])``).
-- :func:`grow`, :func:`preset`, :class:`Groom`, :func:`read_groom` / :func:`write_groom` (grooms and file formats).
-- :class:`State`, :class:`SimulationDiverged`.
-- :func:`make_motion` (head motions), :class:`Wind`, :func:`load_scene` (TOML scenes; the
-  ``ams-torch`` command line in :mod:`ams_torch.cli`).
+    import ams_torch as at
+    groom = at.preset("straight", strands=1000, particles=32)     # grown on at.default_head()
+    sim = at.Simulator(groom.rest_positions, at.Params(),
+                       colliders=[at.MeshCollider(at.default_head())], hair_hair=at.HairHair(resolution=64))
+    state = sim.initial_state()
+    state = sim.step(state, pose)                                  # pose: at.Pose
+
+Everything else lives in the subpackages, which import downwards only (no cycles)::
+
+    apps      motion, scene files, recipes, dataset generation and reading, render, CLI
+    grooms    Groom, growth and presets, the default head, file formats (io)      → geometry
+    sim       Params, Model, State/Control/Config, forces, assembly, step, Simulator
+                                                                 → stages, solver, geometry
+    stages    collisions (colliders), hair–hair grid, wind                        → geometry
+    solver    the banded strand solve, its op and native kernels
+    geometry  Pose, SDF grids, mesh loading
 """
-from .colliders import CapsuleCollider, HollowSphereCollider, MeshCollider, PlaneCollider, SphereCollider
-from . import io
-from .groom import Groom, resample_strands
-from .growth import PRESETS, GrowthParams, grow, preset
-from .hair_hair import HairHair
-from .io import read_groom, write_groom
-from .head import default_head, load_mesh
-from .integrator import SimulationDiverged
-from .model import State
-from .ops import solve_banded
-from .params import Params
-from .pose import Pose
-from .sdf import SDFGrid
-from .simulator import Simulator
-from .motion import make_motion
-from .wind import Wind
-from .scene import SceneError, load_scene
+from ams_torch import apps, geometry, grooms, sim, solver, stages
+from ams_torch.geometry.pose import Pose
+from ams_torch.grooms.growth import preset
+from ams_torch.grooms.head import default_head
+from ams_torch.grooms.io import read_groom, write_groom
+from ams_torch.sim.integrator import SimulationDiverged
+from ams_torch.sim.model import State
+from ams_torch.sim.params import Params
+from ams_torch.sim.simulator import Simulator
+from ams_torch.solver.build import native_status
+from ams_torch.stages.collide import MeshCollider
+from ams_torch.stages.hair_hair import HairHair
 
 __version__ = "0.1.0"
 
-__all__ = ["Params", "Simulator", "Pose", "State", "solve_banded", "SimulationDiverged", "HairHair",
-           "default_head", "load_mesh", "SDFGrid", "SphereCollider", "MeshCollider", "CapsuleCollider",
-           "PlaneCollider", "HollowSphereCollider",
-           "grow", "preset", "GrowthParams", "PRESETS", "Groom", "resample_strands", "io", "read_groom", "write_groom",
-           "make_motion", "Wind", "load_scene", "SceneError", "__version__"]
+__all__ = ["Params", "Simulator", "State", "Pose", "HairHair", "MeshCollider", "default_head", "preset",
+           "read_groom", "write_groom", "SimulationDiverged", "native_status",
+           "apps", "geometry", "grooms", "sim", "solver", "stages", "__version__"]

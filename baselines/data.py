@@ -82,7 +82,7 @@ def generate_dataset(path: str, strands: int = 256, particles: int = 12, sequenc
                 z = float(rng.uniform(-0.15, 0.15))
                 y = float(rng.uniform(-0.15, -0.05))
                 sweep = sweep_poses(frames, params.dt, (-0.45, y, z), (0.45, y, z))
-                cols = [at.SphereCollider(radius=0.06)]
+                cols = [at.stages.SphereCollider(radius=0.06)]
                 cposes = [[p] for p in sweep]
                 centres = np.stack([p.translation.numpy() for p in sweep])
             x = simulate_sequence(rest, poses, cols, cposes, params)

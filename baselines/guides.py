@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import torch
 
-from ams_torch.groom import fps_order
+from ams_torch.grooms.groom import fps_order
 
 __all__ = ["select_guides", "fps_order"]
 

@@ -10,8 +10,8 @@ from typing import Callable, Dict, Optional, Sequence
 
 import torch
 
-from ams_torch.colliders import collider_distances
-from ams_torch.pose import Pose
+from ams_torch.stages.collide import collider_distances
+from ams_torch.geometry.pose import Pose
 
 __all__ = ["vertex_errors", "tip_error", "curvature", "curvature_error", "segment_length_error",
            "strand_length_error", "penetration", "temporal_jitter", "stack_poses", "summary",

@@ -7,7 +7,7 @@
    and the time to load the same grid from the disk cache.
 2. The collision stage as the simulator runs it each frame (``resolve_world_poses`` + ``collide``)
    for strands × 32 particles hanging from the default head's scalp
-   (``ams_torch.head.hanging_groom``), posed by a turning head with velocities, jittered by
+   (``ams_torch.grooms.head.hanging_groom``), posed by a turning head with velocities, jittered by
    ±4 mm and given random velocities so that a realistic share of particles (reported) is in
    contact. Scenes: the head mesh collider (128³ grid), one analytic sphere (a hand) moving
    through the hair, and both. Each case: one warm-up call, then up to ``--reps`` timed calls
@@ -31,16 +31,16 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from ams_torch._bench import machine, sync  # noqa: E402
-from ams_torch.colliders import (  # noqa: E402
+from ams_torch.stages.collide import (  # noqa: E402
     MeshCollider,
     SphereCollider,
     collide,
     collider_distances,
     resolve_world_poses,
 )
-from ams_torch.head import default_head, hanging_groom  # noqa: E402
-from ams_torch.pose import Pose  # noqa: E402
-from ams_torch.sdf import SDFGrid  # noqa: E402
+from ams_torch.grooms.head import default_head, hanging_groom  # noqa: E402
+from ams_torch.geometry.pose import Pose  # noqa: E402
+from ams_torch.geometry.sdf import SDFGrid  # noqa: E402
 
 DT = 1.0 / 60.0
 ROOT = Path(__file__).resolve().parents[1]

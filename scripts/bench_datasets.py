@@ -34,9 +34,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from ams_torch._bench import machine, machine_info, shown_args  # noqa: E402
-from ams_torch.data import HairSequenceDataset  # noqa: E402
-from ams_torch.datagen import generate  # noqa: E402
-from ams_torch.recipe import parse_recipe  # noqa: E402
+from ams_torch.apps.data import HairSequenceDataset  # noqa: E402
+from ams_torch.apps.datagen import generate  # noqa: E402
+from ams_torch.apps.recipe import parse_recipe  # noqa: E402
 
 
 def bench_recipe(strands: int, particles: int, frames: int, sequences: int, batch: int) -> dict:

@@ -27,8 +27,8 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 from ams_torch._bench import machine, sync  # noqa: E402
-from ams_torch.hair_hair import HairHair, hair_hair_stage  # noqa: E402
-from ams_torch.pose import Pose  # noqa: E402
+from ams_torch.stages.hair_hair import HairHair, hair_hair_stage  # noqa: E402
+from ams_torch.geometry.pose import Pose  # noqa: E402
 from test_hair_hair import head_groom  # noqa: E402  (the tests' input factory)
 
 MASS = 1e-6  # kg per particle

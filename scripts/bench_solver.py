@@ -3,8 +3,8 @@
 For every strand count S, particle count N and dtype, times the same assembled systems
 (the tests' factory, ``tests/test_native_solver.py::strand_system``) with:
 
-    native  ams_torch.ops.solve_banded (the registered op; native CPU/CUDA kernel)
-    plain   ams_torch.solver.solve_banded_plain (pure torch block Cholesky)
+    native  ams_torch.solver.op.solve_banded (the registered op; native CPU/CUDA kernel)
+    plain   ams_torch.solver.reference.solve_banded_plain (pure torch block Cholesky)
     dense   torch.linalg.solve on the assembled (S, 3N, 3N) matrices (assembly not timed),
             only where the dense matrices fit in --dense-max-gb
     scipy   scipy.linalg.solveh_banded looped over strands (CPU only; banded storage built
@@ -38,9 +38,9 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from ams_torch import _native, ops  # noqa: E402
+from ams_torch.solver import build as _native, op as ops  # noqa: E402
 from ams_torch._bench import machine_info, median_ms, shown_args  # noqa: E402
-from ams_torch.solver import banded_to_dense, solve_banded_plain  # noqa: E402
+from ams_torch.solver.reference import banded_to_dense, solve_banded_plain  # noqa: E402
 
 METHODS = ("native", "plain", "dense", "scipy")
 DTYPES = {"float32": torch.float32, "float64": torch.float64}

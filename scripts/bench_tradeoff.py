@@ -33,7 +33,7 @@ always of the full scene.
 The ``fast`` / ``balanced`` / ``accurate`` presets are chosen from the measured fronts
 (:func:`choose_presets`) and then measured in every scene; finally a per-stage time breakdown of
 a frame for each preset (``torch.profiler`` on the ``ams_torch.*`` labels of
-:mod:`ams_torch.integrator` and :func:`ams_torch.scene.simulate`), with each stage switched off
+:mod:`ams_torch.sim.integrator` and :func:`ams_torch.apps.scene.simulate`), with each stage switched off
 in turn.
 
 Writes ``docs/tradeoff.json`` (a list with one record per setting:
@@ -65,9 +65,9 @@ sys.path.insert(0, str(REPO))
 
 import ams_torch as at  # noqa: E402
 from ams_torch._bench import machine_info, shown_args  # noqa: E402
-from ams_torch import scene as scn  # noqa: E402
-from ams_torch.constraints import max_stretch  # noqa: E402
-from ams_torch.params import PARAM_PRESETS  # noqa: E402
+from ams_torch.apps import scene as scn  # noqa: E402
+from ams_torch.sim.inextensibility import max_stretch  # noqa: E402
+from ams_torch.sim.params import PARAM_PRESETS  # noqa: E402
 from ams_torch.testing import shape_deviation  # noqa: E402
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
@@ -164,7 +164,7 @@ def build_run(raw: dict, setting: dict, subset: np.ndarray | None = None) -> scn
 
 def simulate_setting(raw: dict, setting: dict, subset=None) -> dict:
     """Run one setting. Returns ``x`` (F, S, N, 3) float64 m (None if it diverged),
-    ``ms`` ({stage: ms/frame} from :func:`ams_torch.scene.simulate`), ``stretch`` (largest
+    ``ms`` ({stage: ms/frame} from :func:`ams_torch.apps.scene.simulate`), ``stretch`` (largest
     relative edge-length error over the run), ``wall_s`` and ``diverged`` (message or None)."""
     run = build_run(raw, setting, subset)
     edge = run.sim.model.edge_rest_length
@@ -775,8 +775,8 @@ def write_markdown(path: Path, records, infos, breakdown, chosen, slopes, machin
                 != (chosen[p]["substeps"], chosen[p]["particles"], chosen[p]["dtype"])
                 or (chosen[p]["grid"] is not None and chosen[p]["grid"] != library[p]["grid"])]
     L += ["", "These are the presets the rule below picks from this run's data. "
-          + ("`ams_torch.params.PARAM_PRESETS` holds the same values." if not mismatch else
-             "**`ams_torch.params.PARAM_PRESETS` differs for " + ", ".join(f"`{p}`" for p in mismatch)
+          + ("`ams_torch.sim.params.PARAM_PRESETS` holds the same values." if not mismatch else
+             "**`ams_torch.sim.params.PARAM_PRESETS` differs for " + ", ".join(f"`{p}`" for p in mismatch)
              + f"** (library: {', '.join(f'{p}: {library[p]}' for p in mismatch)}): update it or rerun."), ""]
 
     # ---- summary: findings
@@ -964,7 +964,7 @@ def write_markdown(path: Path, records, infos, breakdown, chosen, slopes, machin
     L += ["## Where a frame's time goes", "",
           f"`torch.profiler` over {args.profile_frames} frames (after a one-frame warm-up run; per label the "
           f"minimum of {getattr(args, 'profile_repeats', 1)} such runs) on the `ams_torch.*` "
-          "labels of `ams_torch/integrator.py` and `ams_torch.scene.simulate`, ms/frame, profiler overhead included "
+          "labels of `ams_torch/integrator.py` and `ams_torch.apps.scene.simulate`, ms/frame, profiler overhead included "
           "(totals are above the un-profiled ms/frame). `springs`: edge/bend/torsion forces and Jacobian blocks; "
           "`biphasic`: integrity and angular couplings; `assembly`: the rest of the system assembly; `solve`: the "
           "banded solve; `other`: pose interpolation, position updates, divergence guard. The `balanced` rows with "
@@ -1015,7 +1015,7 @@ def write_markdown(path: Path, records, infos, breakdown, chosen, slopes, machin
           "strand, mean particle distance, averaged over strands and frames; it ignores a strand swinging rigidly "
           "out of phase.",
           "- **ms/frame** is the wall time of `Simulator.step` per frame (mean over the run, from "
-          "`ams_torch.scene.simulate`), with the divergence guard on.", ""]
+          "`ams_torch.apps.scene.simulate`), with the divergence guard on.", ""]
     checks = [(i["scene"], c) for i in infos for c in i["checks"]]
     if checks:
         L += ["How converged the references are (the reference with half the substeps, or half the particles; "

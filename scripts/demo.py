@@ -10,7 +10,7 @@ import argparse
 import os
 import sys
 
-from ams_torch.cli import main as cli_main
+from ams_torch.apps.cli import main as cli_main
 
 SCENE = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "datasets", "scenes", "default.toml")
 

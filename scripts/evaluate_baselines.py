@@ -60,14 +60,14 @@ def scenes(frames: int, dt: float, seed: int):
     out = []
     head = random_motion(frames, dt, rng)
     sweep = sweep_poses(frames, dt, (-0.45, -0.1, 0.12), (0.45, -0.1, 0.12))
-    out.append(("sphere sweep", head, [at.SphereCollider(radius=0.07)], [[p] for p in sweep]))
+    out.append(("sphere sweep", head, [at.stages.SphereCollider(radius=0.07)], [[p] for p in sweep]))
     head = random_motion(frames, dt, rng, scale=0.7)
     sweep = sweep_poses(frames, dt, (0.0, -0.12, -0.45), (0.0, -0.12, 0.45))
-    shell = at.HollowSphereCollider(radius=0.09, thickness=0.03, cut_height=0.03, axis=(0.0, 0.0, 1.0))
+    shell = at.stages.HollowSphereCollider(radius=0.09, thickness=0.03, cut_height=0.03, axis=(0.0, 0.0, 1.0))
     out.append(("hollow sphere", head, [shell], [[p] for p in sweep]))
     head = random_motion(frames, dt, rng, scale=0.5)
     sweep = sweep_poses(frames, dt, (0.15, -0.12, -0.4), (0.15, -0.12, 0.4))  # a hand combing the side
-    fingers = [at.CapsuleCollider(a=(dx, -0.06, 0.0), b=(dx, 0.06, 0.0), radius=0.012) for dx in (-0.03, 0.0, 0.03)]
+    fingers = [at.stages.CapsuleCollider(a=(dx, -0.06, 0.0), b=(dx, 0.06, 0.0), radius=0.012) for dx in (-0.03, 0.0, 0.03)]
     out.append(("hand (3 capsules)", head, fingers, [[p] * 3 for p in sweep]))
     return out
 

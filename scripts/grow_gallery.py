@@ -29,9 +29,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.collections import PolyCollection  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-import ams_torch.growth as growth  # noqa: E402
-from ams_torch.head import default_head  # noqa: E402
-from ams_torch.sdf import SDFGrid  # noqa: E402
+import ams_torch.grooms.growth as growth  # noqa: E402
+from ams_torch.grooms.head import default_head  # noqa: E402
+from ams_torch.geometry.sdf import SDFGrid  # noqa: E402
 
 VIEWS = {
     # name: (right, up, toward viewer) axes of the head frame (+y up, face toward +z)

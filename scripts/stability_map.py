@@ -49,7 +49,7 @@ sys.path.insert(0, str(REPO))
 
 import ams_torch as at  # noqa: E402
 from ams_torch._bench import machine_info, shown_args  # noqa: E402
-from ams_torch.constraints import max_stretch  # noqa: E402
+from ams_torch.sim.inextensibility import max_stretch  # noqa: E402
 from ams_torch.testing import shake_poses, sphere_groom  # noqa: E402
 
 G = 9.81

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 import ams_torch as at
-from ams_torch.pose import axis_angle_to_matrix
+from ams_torch.geometry.pose import axis_angle_to_matrix
 from ams_torch.testing import sphere_groom
 from baselines import LinearHairSkinning, metrics, select_guides
 
@@ -120,7 +120,7 @@ def test_metrics_known_values(groom):
 
 
 def test_penetration_and_jitter():
-    sphere = at.SphereCollider(center=(0.0, 0.0, 0.0), radius=0.1)
+    sphere = at.stages.SphereCollider(center=(0.0, 0.0, 0.0), radius=0.1)
     x = torch.tensor([[[0.098, 0.0, 0.0], [0.2, 0.0, 0.0], [0.0, 0.3, 0.0], [0.0, 0.0, 0.5]]],
                      dtype=torch.float64)  # one vertex 2 mm inside
     p = metrics.penetration(x, [sphere], [None])

@@ -6,7 +6,7 @@ import h5py
 import imageio.v3 as iio
 import numpy as np
 
-from ams_torch.cli import main, read_sequence
+from ams_torch.apps.cli import main, read_sequence
 
 TINY = """
 name = "tiny"

@@ -6,7 +6,7 @@ import pytest
 import torch
 import trimesh
 
-from ams_torch.colliders import (
+from ams_torch.stages.collide import (
     CapsuleCollider,
     HollowSphereCollider,
     MeshCollider,
@@ -16,9 +16,9 @@ from ams_torch.colliders import (
     collider_distances,
     resolve_world_poses,
 )
-from ams_torch.head import default_head
-from ams_torch.pose import Pose, axis_angle_to_matrix
-from ams_torch.sdf import SDFGrid
+from ams_torch.grooms.head import default_head
+from ams_torch.geometry.pose import Pose, axis_angle_to_matrix
+from ams_torch.geometry.sdf import SDFGrid
 
 DT = 0.02
 
@@ -337,8 +337,8 @@ def test_mesh_collider_no_penetration(head_collider):
 # end to end, through the simulator
 # ---------------------------------------------------------------------------------------
 def test_swept_sphere_pushes_hair_aside():
-    from ams_torch.params import Params
-    from ams_torch.simulator import Simulator
+    from ams_torch.sim.params import Params
+    from ams_torch.sim.simulator import Simulator
     from ams_torch.testing import sphere_groom
 
     rest = sphere_groom(300, 16, radius=0.1, length=0.25, seed=2)
@@ -367,9 +367,9 @@ def test_swept_sphere_pushes_hair_aside():
 
 
 def test_spinning_head_leaves_no_particle_inside(head_collider):
-    from ams_torch.head import hanging_groom
-    from ams_torch.params import Params
-    from ams_torch.simulator import Simulator
+    from ams_torch.grooms.head import hanging_groom
+    from ams_torch.sim.params import Params
+    from ams_torch.sim.simulator import Simulator
 
     grid = head_collider.sdf
     rest = hanging_groom(default_head(), 1000, 32, 0.2, sdf=grid, seed=0)
@@ -396,10 +396,10 @@ def test_spinning_head_leaves_no_particle_inside(head_collider):
 def test_contact_does_not_leave_stretched_edges(head_collider):
     """The length restore after the collision response (Params.collision_inextensibility) keeps
     edges near their rest length under fast head contact, without letting hair back inside."""
-    from ams_torch.constraints import max_stretch
-    from ams_torch.head import hanging_groom
-    from ams_torch.params import Params
-    from ams_torch.simulator import Simulator
+    from ams_torch.sim.inextensibility import max_stretch
+    from ams_torch.grooms.head import hanging_groom
+    from ams_torch.sim.params import Params
+    from ams_torch.sim.simulator import Simulator
     from ams_torch.testing import shake_poses
 
     grid = head_collider.sdf

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 import torch
 
-from ams_torch.cli import main
-from ams_torch.data import HairSequenceDataset, validate, validate_file
-from ams_torch.datagen import generate, shard_filename, simulate_group
-from ams_torch.recipe import RecipeError, load_recipe
+from ams_torch.apps.cli import main
+from ams_torch.apps.data import HairSequenceDataset, validate, validate_file
+from ams_torch.apps.datagen import generate, shard_filename, simulate_group
+from ams_torch.apps.recipe import RecipeError, load_recipe
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -240,7 +240,7 @@ def test_killed_generator_resumes_to_identical_files(tmp_path):
     clean = generate(r, str(tmp_path / "clean"), progress=False, log=lambda s: None)[0]
     out = tmp_path / "killed"
     work = out / ".partial" / os.path.splitext(shard_filename(r, 0, 1))[0]
-    cmd = [sys.executable, "-m", "ams_torch.cli", "generate", recipe, "--out", str(out), "--quiet"]
+    cmd = [sys.executable, "-m", "ams_torch.apps.cli", "generate", recipe, "--out", str(out), "--quiet"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     deadline = time.time() + 120
     while time.time() < deadline and proc.poll() is None:
@@ -279,7 +279,7 @@ def test_ray_backend_matches_local(tmp_path):
     ray = pytest.importorskip("ray")
     r = load_recipe(write(tmp_path, SMALL))
     local = generate(r, str(tmp_path / "local"), num_shards=2, progress=False, log=lambda s: None)
-    from ams_torch.datagen import generate_ray, start_local_ray
+    from ams_torch.apps.datagen import generate_ray, start_local_ray
 
     start_local_ray(num_cpus=2)
     try:

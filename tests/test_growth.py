@@ -6,9 +6,9 @@ import pytest
 import torch
 import trimesh
 
-import ams_torch.growth as growth
-from ams_torch.groom import Groom, resample_strands, strand_lengths
-from ams_torch.growth import GrowthParams, grow, grow_from_roots, preset
+import ams_torch.grooms.growth as growth
+from ams_torch.grooms.groom import Groom, resample_strands, strand_lengths
+from ams_torch.grooms.growth import GrowthParams, grow, grow_from_roots, preset
 
 
 # ------------------------------------------------------------------------------------------
@@ -24,13 +24,13 @@ def sphere():
 
 @pytest.fixture(scope="module")
 def head():
-    from ams_torch.head import default_head
+    from ams_torch.grooms.head import default_head
     return default_head()
 
 
 @pytest.fixture(scope="module")
 def head_sdf(head, tmp_path_factory):
-    from ams_torch.sdf import SDFGrid
+    from ams_torch.geometry.sdf import SDFGrid
     return SDFGrid.from_mesh(head, resolution=64, cache_dir=tmp_path_factory.mktemp("sdf"))
 
 

@@ -5,9 +5,9 @@ import pytest
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from ams_torch.hair_hair import (HairHair, _detailed_collisions, build_hair_hair, grid_density,
+from ams_torch.stages.hair_hair import (HairHair, _detailed_collisions, build_hair_hair, grid_density,
                                  hair_hair_stage, make_stage)
-from ams_torch.pose import Pose
+from ams_torch.geometry.pose import Pose
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 DT = 1.0 / 60.0
@@ -350,8 +350,8 @@ def test_stage_is_differentiable():
 def test_runs_as_a_simulator_stage():
     """Wired through the simulator's stage list: a groom at rest stays put, a shaken one stays
     finite and differs from the run without hair–hair."""
-    from ams_torch.params import Params
-    from ams_torch.simulator import Simulator
+    from ams_torch.sim.params import Params
+    from ams_torch.sim.simulator import Simulator
 
     rest = head_groom(40, 8, length=0.12)
     sim = Simulator(rest, Params(), dtype=torch.float64)

@@ -7,8 +7,9 @@ import pytest
 import torch
 import trimesh
 
-from ams_torch.head import default_head, load_mesh
-from ams_torch.sdf import SDFGrid, sdf_cache_dir
+from ams_torch.geometry.mesh import load_mesh
+from ams_torch.grooms.head import default_head
+from ams_torch.geometry.sdf import SDFGrid, sdf_cache_dir
 
 pcu = pytest.importorskip("point_cloud_utils")
 
@@ -117,7 +118,7 @@ def test_load_mesh_roundtrip_and_non_watertight(tmp_path, caplog):
     assert fixed.is_watertight and fixed.volume > 0
     assert any("repairing" in r.message for r in caplog.records)
 
-    from ams_torch.colliders import MeshCollider
+    from ams_torch.stages.collide import MeshCollider
 
     with pytest.raises(ValueError, match="not watertight"):
         MeshCollider(holed)

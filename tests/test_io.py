@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from ams_torch.groom import Groom, strand_lengths
-from ams_torch.io import FORMATS, GroomFileError, read_groom, write_groom
+from ams_torch.grooms.groom import Groom, strand_lengths
+from ams_torch.grooms.io import FORMATS, GroomFileError, read_groom, write_groom
 
 WRITABLE = [".data", ".hair", ".bin", ".ply", ".npz", ".usda", ".usdc"]
 
@@ -275,7 +275,7 @@ def test_corrupt_usd_raises_value_error(tmp_path):
 
 def test_grown_groom_round_trips_with_binding(tmp_path):
     trimesh = pytest.importorskip("trimesh")
-    from ams_torch.growth import grow
+    from ams_torch.grooms.growth import grow
     mesh = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
     g = grow(mesh, region=None, strands=50, particles=8, seed=0, collide=False)
     g.save(tmp_path / "g.npz")

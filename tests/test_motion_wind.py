@@ -4,9 +4,9 @@ import pytest
 import torch
 
 import ams_torch as at
-from ams_torch.motion import Keyframes, RollerCoaster, make_motion, recorded
+from ams_torch.apps.motion import Keyframes, RollerCoaster, make_motion, recorded
 from ams_torch.testing import sphere_groom
-from ams_torch.wind import Wind
+from ams_torch.stages.wind import Wind
 
 MOTIONS = [{"type": "static"}, {"type": "shake"}, {"type": "nod"}, {"type": "spin", "rate": 4.0},
            {"type": "roller_coaster"},

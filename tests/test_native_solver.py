@@ -19,11 +19,11 @@ from pathlib import Path
 import pytest
 import torch
 
-from ams_torch import _native, ops
-from ams_torch.solver import banded_matvec, banded_to_dense, solve_banded_dense, solve_banded_plain
+from ams_torch.solver import build as _native, op as ops
+from ams_torch.solver.reference import banded_matvec, banded_to_dense, solve_banded_dense, solve_banded_plain
 
 REPO = Path(__file__).resolve().parents[1]
-CSRC = REPO / "ams_torch" / "csrc" / "banded"
+CSRC = REPO / "ams_torch" / "solver" / "csrc" / "banded"
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 H = 1.0 / 60.0  # time step of the assembled systems, s
 
@@ -269,8 +269,8 @@ _FALLBACK_SCRIPT = textwrap.dedent(
     sys.path.insert(0, {tests!r})
     import torch
     from test_native_solver import strand_system
-    from ams_torch import _native, ops
-    from ams_torch.solver import solve_banded_plain
+    from ams_torch.solver import build as _native, op as ops
+    from ams_torch.solver.reference import solve_banded_plain
 
     def scenario(env):
         os.environ.update(env)
@@ -374,7 +374,7 @@ def test_lock_of_killed_builder_is_broken(tmp_path):
         f"""
         import sys, time
         from pathlib import Path
-        from ams_torch._native import build_lock
+        from ams_torch.solver.build import build_lock
         d = Path({str(tmp_path)!r})
         with build_lock(d):
             (d / "lock").write_text("")  # torch's FileBaton, as cpp_extension.load leaves it

@@ -4,8 +4,8 @@ import pytest
 import torch
 
 import ams_torch as at
-from ams_torch import forces
-from ams_torch.motion import RollerCoaster, Shake
+from ams_torch.sim import forces
+from ams_torch.apps.motion import RollerCoaster, Shake
 from ams_torch.testing import shake_poses, shape_deviation, sphere_groom
 
 

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import ams_torch as at
-from ams_torch.scene import SCENE_DIR, SceneError, build, load_scene, parse_scene, simulate, trim_strands
+from ams_torch.apps.scene import SCENE_DIR, SceneError, build, load_scene, parse_scene, simulate, trim_strands
 
 SCENES = sorted(glob.glob(os.path.join(SCENE_DIR, "*.toml")))
 

@@ -3,9 +3,9 @@ import pytest
 import torch
 
 import ams_torch as at
-from ams_torch.integrator import assemble_system
-from ams_torch.model import build_model
-from ams_torch.solver import banded_matvec, banded_to_dense, solve_banded_dense, solve_banded_plain
+from ams_torch.sim.integrator import assemble_system
+from ams_torch.sim.model import build_model
+from ams_torch.solver.reference import banded_matvec, banded_to_dense, solve_banded_dense, solve_banded_plain
 
 
 def random_spd_blocks(strands, n, dtype, seed=0, device="cpu"):
@@ -41,7 +41,7 @@ def test_plain_matches_dense(n, dtype, tol, device):
     ref = solve_banded_dense(blocks.double(), rhs.double())
     rel = (x.double() - ref).norm() / ref.norm()
     assert rel <= tol, f"N={n} {dtype}: relative error {rel:.3g} > {tol}"
-    assert at.solve_banded(blocks, rhs).shape == rhs.shape
+    assert at.solver.solve_banded(blocks, rhs).shape == rhs.shape
 
 
 def test_entries_above_the_band_start_are_ignored():

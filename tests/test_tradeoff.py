@@ -31,7 +31,7 @@ def one_thread():
 
 def bob_wisp(params: at.Params, particles: int, frames: int, dtype=F64, strands: int = 4) -> torch.Tensor:
     """Positions (frames, strands, particles, 3) m, float64, of a wisp on the bobbing head."""
-    motion = at.make_motion(BOB)
+    motion = at.apps.motion.make_motion(BOB)
     rest = wisp(strands, particles, dtype=F64)
     sim = at.Simulator(rest, params, dtype=dtype, pose=motion(0.0, dtype=dtype))
     state = sim.initial_state()

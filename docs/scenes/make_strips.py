@@ -14,9 +14,9 @@ import time
 
 import numpy as np
 
-from ams_torch.cli import _head_for_render
-from ams_torch.render import render_strip
-from ams_torch.scene import SCENE_DIR, build, load_scene, simulate
+from ams_torch.apps.cli import _head_for_render
+from ams_torch.apps.render import render_strip
+from ams_torch.apps.scene import SCENE_DIR, build, load_scene, simulate
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 

@@ -1,6 +1,6 @@
 """Simulation datasets on disk (HDF5): layout, checksums, validation and a torch ``Dataset``.
 
-``ams-torch generate`` (:mod:`ams_torch.datagen`) writes one HDF5 file per shard; the layout is
+``ams-torch generate`` (:mod:`ams_torch.apps.datagen`) writes one HDF5 file per shard; the layout is
 documented in ``docs/dataset_format.md``. In short, every sequence is a group ``seq_{index:06d}``
 holding ``positions`` (F, S, N, 3) (float32 or float16, metres, world frame, one chunk per
 frame), the head pose per frame, the rest groom and its root binding, optional velocities and

@@ -24,8 +24,8 @@ non-negative ...``). Top level::
     [stages]   hair_hair = false, collisions = false, nonhookean = false
     [hair_hair] fields of ams_torch.HairHair (resolution = 64, ...)
     [motion]   type = "static" | "shake" | "nod" | "spin" | "roller_coaster" | "keyframes" |
-               "recorded" and the motion's arguments (see ams_torch.motion)
-    [wind]     fields of ams_torch.wind.Wind (speed, direction, gust, turbulence, ...)
+               "recorded" and the motion's arguments (see ams_torch.apps.motion)
+    [wind]     fields of ams_torch.stages.wind.Wind (speed, direction, gust, turbulence, ...)
     [[colliders]] type = "sphere" | "capsule" | "plane" | "hollow_sphere", its arguments,
                follow_head = false, and an optional [colliders.motion] (world pose over time)
     [trim]     frame = 60, point = [x, y, z], normal = [nx, ny, nz] (head frame): at that frame
@@ -51,14 +51,14 @@ from typing import Any, Dict, List, Optional
 import numpy as np
 import torch
 
-from .motion import Motion, make_motion
-from .params import Params
-from .wind import Wind
+from ams_torch.apps.motion import Motion, make_motion
+from ams_torch.sim.params import Params
+from ams_torch.stages.wind import Wind
 
 __all__ = ["SceneError", "load_scene", "parse_scene", "build", "simulate", "BuiltScene", "trim_strands",
            "SCENE_DIR"]
 
-SCENE_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "datasets", "scenes")
+SCENE_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "datasets", "scenes")
 
 
 class SceneError(ValueError):
@@ -183,7 +183,7 @@ def parse_scene(raw: dict, where: str = "scene", base: str = ".") -> dict:
     if len(sources) != 1:
         _fail(where, f"[groom] needs exactly one of preset, file, kind; got {sources}")
     if "preset" in groom:
-        from .growth import PRESETS
+        from ams_torch.grooms.growth import PRESETS
 
         if groom["preset"] not in PRESETS:
             _fail(where, f"[groom].preset must be one of {list(PRESETS)}; got {groom['preset']!r}")
@@ -230,7 +230,7 @@ def parse_scene(raw: dict, where: str = "scene", base: str = ".") -> dict:
         _fail(where, msg)
 
     hh = s.get("hair_hair", {})
-    from .hair_hair import HairHair
+    from ams_torch.stages.hair_hair import HairHair
 
     _check_keys(hh, {f.name for f in dataclasses.fields(HairHair)}, where, "hair_hair")
     if hh and not stages["hair_hair"]:
@@ -313,7 +313,7 @@ def make_params(scene: dict) -> Params:
 
 
 def _make_collider(c: dict):
-    from . import colliders as C
+    from ams_torch.stages import collide as C
 
     cls = getattr(C, _COLLIDERS[c["type"]][0])
     args = {k: v for k, v in c.items() if k not in ("type", "motion")}
@@ -325,12 +325,12 @@ def _make_collider(c: dict):
 
 def _head_mesh(head: dict):
     if head["mesh"] == "default":
-        from .head import default_head
+        from ams_torch.grooms.head import default_head
 
         return default_head(head["subdivisions"])
     if head["mesh"] in ("sphere", "none"):
         return None
-    from .head import load_mesh
+    from ams_torch.geometry.mesh import load_mesh
 
     return load_mesh(head["mesh"])
 
@@ -343,13 +343,13 @@ def _make_groom(scene: dict, mesh) -> tuple:
     strands = max(1, int(round(g.get("strands", 1000) * scale)))
     particles = g.get("particles")
     if "preset" in g:
-        from .growth import preset
+        from ams_torch.grooms.growth import preset
 
         groom = preset(g["preset"], strands=strands, particles=particles, seed=g.get("seed", 0), mesh=mesh,
                        **g.get("growth", {}))
         return groom.rest_positions.numpy(), groom
     if "file" in g:
-        from .io import read_groom
+        from ams_torch.grooms.io import read_groom
 
         groom = read_groom(g["file"], resample=particles or 32)
         if scale != 1.0:
@@ -358,11 +358,11 @@ def _make_groom(scene: dict, mesh) -> tuple:
     n = particles or 32
     length = g.get("length", 0.25)
     if g["kind"] == "sphere":
-        from .testing import sphere_groom
+        from ams_torch.grooms.simple import sphere_groom
 
         return sphere_groom(strands, n, radius=g.get("radius", scene["head"]["radius"]), length=length).numpy(), None
     if g["kind"] == "wisp":
-        from .testing import wisp
+        from ams_torch.grooms.simple import wisp
 
         return np.asarray(wisp(strands, n, length=length, spread=g.get("spread", 0.01))), None
     # a single horizontal strand (or several side by side, 1 cm apart), rooted at the origin
@@ -403,8 +403,8 @@ def _ms_variant(params: Params, rest: np.ndarray, offset) -> tuple:
 def build(scene: dict, device=None, dtype=torch.float32) -> BuiltScene:
     """Build the simulator and controls of a validated scene (see :func:`load_scene`).
     Only the stages the scene names are built (no grid, no SDF otherwise)."""
-    from .hair_hair import HairHair
-    from .simulator import Simulator
+    from ams_torch.stages.hair_hair import HairHair
+    from ams_torch.sim.simulator import Simulator
 
     times = {}
     t0 = time.perf_counter()
@@ -418,7 +418,7 @@ def build(scene: dict, device=None, dtype=torch.float32) -> BuiltScene:
     stages = scene["stages"]
     cols, col_motions = [], []
     if stages["collisions"]:
-        from .colliders import MeshCollider, SphereCollider
+        from ams_torch.stages.collide import MeshCollider, SphereCollider
 
         if scene["head"]["collide"] and mesh is not None:
             cols.append(MeshCollider(mesh, resolution=scene["head"]["sdf_resolution"], follow_head=True))
@@ -492,7 +492,7 @@ def simulate(run: BuiltScene, frames: Optional[int] = None, progress: bool = Fal
     ``rotations`` (F, 3, 3), ``translations`` (F, 3) m, ``ms_per_frame`` {stage: ms} (``solve``:
     the AMS integration incl. inextensibility; ``hair_hair``, ``collisions``, ``wind``, ``trim``)
     and the final ``state``. ``on_frame(k, state)`` is called after each frame."""
-    from .pose import Pose
+    from ams_torch.geometry.pose import Pose
 
     sim = run.sim
     scene = run.scene
@@ -607,7 +607,7 @@ def _collider_world_poses(specs, motions, t: float, head_pose) -> tuple:
 
 def _apply_trim(run: BuiltScene, state, trim: dict):
     """Cut the groom by the scene's plane and rebuild the simulator around the shorter strands."""
-    from .simulator import Simulator
+    from ams_torch.sim.simulator import Simulator
 
     old = run.sim
     rest, x, v, frac = trim_strands(old.model.rest_positions, state.x, state.v, state.pose,

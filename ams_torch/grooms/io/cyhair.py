@@ -26,7 +26,7 @@ import struct
 
 import numpy as np
 
-from ._common import ByteReader, concat_strands, fail, read_bytes, split_points
+from ams_torch.grooms.io._common import ByteReader, concat_strands, fail, read_bytes, split_points
 
 _HEADER = struct.Struct("<4sIIIIff3f88s")
 assert _HEADER.size == 128

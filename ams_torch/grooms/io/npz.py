@@ -12,7 +12,7 @@ import zipfile
 
 import numpy as np
 
-from ._common import concat_strands, fail, split_points
+from ams_torch.grooms.io._common import concat_strands, fail, split_points
 
 FORMAT = "ams_torch-groom-v1"
 _BINDING = {"root_triangles": (np.int64, ()), "root_barycentrics": (np.float32, (3,)),

@@ -66,7 +66,7 @@ from typing import Callable, Optional, Tuple
 import torch
 import torch.nn.functional as F
 
-from .pose import Pose
+from ams_torch.geometry.pose import Pose
 
 __all__ = ["HairHair", "HairHairGrid", "build_hair_hair", "hair_hair_stage", "grid_density", "make_stage"]
 

@@ -12,8 +12,8 @@ from typing import Optional
 import numpy as np
 import torch
 
-from .params import Params
-from .pose import Pose
+from ams_torch.sim.params import Params
+from ams_torch.geometry.pose import Pose
 
 __all__ = ["Model", "State", "build_model", "check_rest_positions", "MIN_PARTICLES"]
 

@@ -1,6 +1,6 @@
 """Dataset recipes: a TOML description of a simulation dataset, and the sequences drawn from it.
 
-A recipe is a scene (:mod:`ams_torch.scene`) whose values may be *samplers*, plus how many
+A recipe is a scene (:mod:`ams_torch.apps.scene`) whose values may be *samplers*, plus how many
 sequences to simulate and what to store. Top level::
 
     name = "tiny"            # optional, default: file stem
@@ -46,7 +46,7 @@ Usage::
 
     recipe = load_recipe("datasets/tiny.toml")
     recipe.sequence_spec(3)      # {"index": 3, "group": 1, "motion": {...}, "wind": {...} | None, ...}
-    recipe.group_scene(1)        # a validated scene dict (see ams_torch.scene.build)
+    recipe.group_scene(1)        # a validated scene dict (see ams_torch.apps.scene.build)
 """
 from __future__ import annotations
 
@@ -60,7 +60,7 @@ from typing import Any, Dict, List, Optional
 
 import numpy as np
 
-from .scene import SceneError, parse_scene, read_toml
+from ams_torch.apps.scene import SceneError, parse_scene, read_toml
 
 __all__ = ["RecipeError", "Recipe", "load_recipe", "parse_recipe", "SAMPLERS", "STORE_DEFAULTS"]
 
@@ -197,7 +197,7 @@ class Recipe:
         dt = self.raw.get("params", {}).get("dt")
         if isinstance(dt, (int, float)) and not isinstance(dt, bool):
             return float(dt)
-        from .params import Params
+        from ams_torch.sim.params import Params
 
         return Params().dt
 
@@ -264,7 +264,7 @@ class Recipe:
         return {"index": i, "group": i // self.batch, "seed": self.sequence_seed(i), "motion": motion, "wind": wind}
 
     def _draw_motion(self, rng: np.random.Generator, where: str) -> dict:
-        from .motion import MOTIONS
+        from ams_torch.apps.motion import MOTIONS
 
         m = self.raw.get("motion")
         if m is None:
@@ -283,7 +283,7 @@ class Recipe:
         return {"type": kind, **args}
 
     def group_scene(self, g: int) -> dict:
-        """The validated scene (see :func:`ams_torch.scene.parse_scene`) that simulates batch group g;
+        """The validated scene (see :func:`ams_torch.apps.scene.parse_scene`) that simulates batch group g;
         its ``motion`` is the group's first sequence's (the others differ only in motion and wind)."""
         spec = self.group_spec(g)
         first = self.sequence_spec(self.group_sequences(g)[0])
@@ -375,8 +375,8 @@ def parse_recipe(raw: dict, where: str = "recipe", base: str = ".") -> Recipe:
     digest = hashlib.sha256(_canonical(content).encode()).hexdigest()
     recipe = Recipe(raw=raw, where=where, base=base, hash=digest)
     scene = recipe.group_scene(0)
-    from .motion import make_motion
-    from .wind import Wind
+    from ams_torch.apps.motion import make_motion
+    from ams_torch.stages.wind import Wind
 
     spec = recipe.sequence_spec(0)
     try:

@@ -18,7 +18,7 @@ from typing import Dict, List, Tuple
 
 import numpy as np
 
-from ._common import concat_strands, fail, read_bytes, split_points
+from ams_torch.grooms.io._common import concat_strands, fail, read_bytes, split_points
 
 _TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",

@@ -1,4 +1,4 @@
-"""The default head mesh and mesh loading.
+"""The default head mesh (procedural) and a simple hanging groom on it.
 
 The default head is built procedurally from an analytic implicit field (ellipsoids for the
 cranium, face, jaw, chin, nose and ears, a capsule for the neck, joined by smooth unions).
@@ -22,7 +22,7 @@ import numpy as np
 import torch
 import trimesh
 
-__all__ = ["default_head", "load_mesh", "head_implicit", "hanging_groom"]
+__all__ = ["default_head", "head_implicit", "hanging_groom"]
 
 log = logging.getLogger(__name__)
 
@@ -194,43 +194,6 @@ def default_head(subdivisions: int = 5) -> trimesh.Trimesh:
     return out
 
 
-def load_mesh(path: Union[str, os.PathLike], repair: bool = False) -> trimesh.Trimesh:
-    """Load a triangle mesh (any format trimesh reads; scenes are concatenated), units as stored.
-
-    The collision SDF needs a closed surface: a mesh that is not watertight raises ``ValueError``
-    naming the file, unless ``repair=True``, which merges duplicate vertices, fixes winding and
-    normals, fills holes, and logs a warning (and still raises if that does not close it).
-    """
-    path = os.fspath(path)
-    loaded = trimesh.load(path, force="mesh", process=True)
-    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
-        raise ValueError(f"{path}: no triangle mesh found")
-    mesh = loaded
-    if mesh.is_watertight and mesh.is_winding_consistent:
-        if mesh.volume < 0:
-            mesh.invert()
-        return mesh
-    if not repair:
-        raise ValueError(
-            f"{path}: mesh is not watertight ({len(mesh.faces)} faces, "
-            f"{int(len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1)))} boundary edges); "
-            "collisions need a closed surface. Pass repair=True to try to fix it."
-        )
-    log.warning("%s: mesh is not watertight; repairing (merge vertices, fix winding, fill holes)", path)
-    mesh.merge_vertices()
-    mesh.update_faces(mesh.nondegenerate_faces())
-    mesh.update_faces(mesh.unique_faces())
-    mesh.remove_unreferenced_vertices()
-    trimesh.repair.fix_winding(mesh)
-    trimesh.repair.fill_holes(mesh)
-    trimesh.repair.fix_normals(mesh)
-    if not mesh.is_watertight:
-        raise ValueError(f"{path}: mesh is not watertight and repair could not close it")
-    if mesh.volume < 0:
-        mesh.invert()
-    return mesh
-
-
 def hanging_groom(mesh: trimesh.Trimesh, strands: int = 1000, particles: int = 32, length: float = 0.2,
                   region: str = "scalp", sdf=None, clearance: float = 0.003, seed: int = 0,
                   dtype=torch.float32) -> torch.Tensor:
@@ -238,7 +201,7 @@ def hanging_groom(mesh: trimesh.Trimesh, strands: int = 1000, particles: int = 3
 
     Not the procedural grower of SPEC §9: roots are area-uniform samples of the region's
     triangles, each strand leaves along the face normal and turns smoothly outward-and-down
-    over its first third; with ``sdf`` (an :class:`~ams_torch.sdf.SDFGrid` of ``mesh``) every
+    over its first third; with ``sdf`` (an :class:`~ams_torch.geometry.sdf.SDFGrid` of ``mesh``) every
     particle after the root is kept at least ``clearance`` metres outside the head.
 
     Args:

@@ -5,12 +5,12 @@ from typing import Iterable, Optional, Sequence
 
 import torch
 
-from . import integrator
-from .model import State, build_model
-from .colliders import Collider, CollisionStage
-from .hair_hair import HairHair, build_hair_hair, make_stage
-from .params import Params
-from .pose import Pose
+from ams_torch.sim import integrator
+from ams_torch.sim.model import State, build_model
+from ams_torch.stages.collide import Collider, CollisionStage
+from ams_torch.stages.hair_hair import HairHair, build_hair_hair, make_stage
+from ams_torch.sim.params import Params
+from ams_torch.geometry.pose import Pose
 
 __all__ = ["Simulator"]
 

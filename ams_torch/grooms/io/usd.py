@@ -18,7 +18,7 @@ import re
 
 import numpy as np
 
-from ._common import concat_strands, fail, split_points
+from ams_torch.grooms.io._common import concat_strands, fail, split_points
 
 
 def _pxr(path):

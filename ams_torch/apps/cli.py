@@ -90,7 +90,7 @@ def _head_for_render(scene: dict):
     head = scene.get("head", {})
     mesh = head.get("mesh", "default")
     if mesh == "default":
-        from .head import default_head
+        from ams_torch.grooms.head import default_head
 
         m = default_head(min(3, int(head.get("subdivisions", 3))))
         return m.vertices, m.faces, None
@@ -98,7 +98,7 @@ def _head_for_render(scene: dict):
         return None, None, float(head.get("radius", 0.1))
     if mesh == "none":
         return None, None, None
-    from .head import load_mesh
+    from ams_torch.geometry.mesh import load_mesh
 
     m = load_mesh(mesh)
     return m.vertices, m.faces, None
@@ -106,7 +106,7 @@ def _head_for_render(scene: dict):
 
 def _render(seq: dict, scene: dict, path: str, view: Optional[str] = None, every: Optional[int] = None,
             progress: bool = False) -> str:
-    from .render import render_sequence
+    from ams_torch.apps.render import render_sequence
 
     r = scene.get("render", {})
     v, f, radius = _head_for_render(scene)
@@ -122,7 +122,7 @@ def _render(seq: dict, scene: dict, path: str, view: Optional[str] = None, every
 def _cmd_simulate(args) -> int:
     import torch
 
-    from .scene import build, load_scene, simulate
+    from ams_torch.apps.scene import build, load_scene, simulate
 
     overrides = {}
     if args.frames is not None:
@@ -171,7 +171,7 @@ def _cmd_info(args) -> int:
 
     import torch
 
-    from . import __version__
+    from ams_torch import __version__
 
     print(f"ams_torch {__version__}, torch {torch.__version__}, python {platform.python_version()}, "
           f"numpy {np.__version__}")
@@ -183,7 +183,7 @@ def _cmd_info(args) -> int:
     else:
         print("cuda: not available")
     try:
-        from . import _native
+        from ams_torch.solver import build as _native
 
         status = _native.native_status()
         print("native solver: " + ", ".join(f"{k}={v}" for k, v in status.items()))
@@ -199,8 +199,8 @@ def _cmd_info(args) -> int:
 
 
 def _cmd_generate(args) -> int:
-    from .datagen import generate, generate_ray, parse_shard
-    from .recipe import load_recipe
+    from ams_torch.apps.datagen import generate, generate_ray, parse_shard
+    from ams_torch.apps.recipe import load_recipe
 
     overrides = {"sequences": args.sequences} if args.sequences is not None else None
     recipe = load_recipe(args.recipe, overrides)
@@ -233,7 +233,7 @@ def _cmd_generate(args) -> int:
 
 
 def _cmd_validate(args) -> int:
-    from .data import validate
+    from ams_torch.apps.data import validate
 
     problems, notes = validate(args.path, progress=not args.quiet)
     bad = 0
@@ -292,7 +292,7 @@ def main(argv=None) -> int:
     ip = sub.add_parser("info", help="versions, devices, native solver status")
     ip.set_defaults(fn=_cmd_info)
     args = ap.parse_args(argv)
-    from .scene import SceneError
+    from ams_torch.apps.scene import SceneError
 
     try:
         return args.fn(args)

@@ -78,7 +78,7 @@ from typing import Any, Dict, Optional
 import numpy as np
 import torch
 
-from .groom import Groom, resample_strands, triangle_frames
+from ams_torch.grooms.groom import Groom, resample_strands, triangle_frames
 
 __all__ = ["GrowthParams", "ALIASES", "grow", "grow_from_roots", "preset", "PRESETS", "sample_roots"]
 
@@ -356,7 +356,7 @@ def _initial_directions(normals: np.ndarray, noise: np.ndarray, min_cos: float) 
 
 
 def _sdf_for(mesh, resolution: int):
-    from .sdf import SDFGrid
+    from ams_torch.geometry.sdf import SDFGrid
     return SDFGrid.from_mesh(mesh, resolution=int(resolution))
 
 
@@ -389,7 +389,7 @@ def grow(mesh, region="scalp", strands: Optional[int] = None, particles: int = 3
 
     Args:
         mesh: ``trimesh.Trimesh`` in metres, head frame (+y up), e.g.
-            ``ams_torch.head.default_head()``; or ``(vertices (V, 3), faces (F, 3))``.
+            ``ams_torch.grooms.head.default_head()``; or ``(vertices (V, 3), faces (F, 3))``.
         region: ``mesh.metadata["regions"]`` name (``"scalp"``, ``"beard"``), face indices or
             bool mask (F,), or ``None``/``"all"``.
         strands: S, number of strands (area-weighted root sampling). Default 1000 when
@@ -398,7 +398,7 @@ def grow(mesh, region="scalp", strands: Optional[int] = None, particles: int = 3
         seed: random seed; the same seed gives the same groom bit for bit.
         per_triangle: p_n roots per selected triangle (the paper's scheme) instead of ``strands``.
         sdf: collision field to reuse (``SDFGrid`` of this mesh); built from the mesh with
-            ``sdf_resolution`` (and cached on disk by :mod:`ams_torch.sdf`) when ``collide``.
+            ``sdf_resolution`` (and cached on disk by :mod:`ams_torch.geometry.sdf`) when ``collide``.
         **growth_params: :class:`GrowthParams` fields or the paper's symbols (``p_tau``,
             ``p_gamma``, ``p_h``, ``p_freq``, ``p_Omega``, ``p_Gamma``).
 
@@ -627,7 +627,7 @@ def preset(name: str, strands: int = 5000, particles: Optional[int] = None, seed
             ponytail 48, fur 8, beard 12). Curls need ≳ 6 particles per turn.
         seed: random seed (same seed → same groom, bit for bit).
         mesh: head mesh in metres (+y up, face toward +z) with ``metadata["regions"]``;
-            default ``ams_torch.head.default_head()``.
+            default ``ams_torch.grooms.head.default_head()``.
         sdf: collision ``SDFGrid`` of ``mesh`` to reuse.
         **overrides: growth parameters replacing the preset's (not for ``ponytail``, which
             takes ``tail_length``, ``tie_radius``, ``spread``, ``margin``).
@@ -639,7 +639,7 @@ def preset(name: str, strands: int = 5000, particles: Optional[int] = None, seed
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
     if mesh is None:
-        from .head import default_head
+        from ams_torch.grooms.head import default_head
         mesh = default_head()
     if name == "ponytail":
         n = 48 if particles is None else int(particles)

@@ -16,7 +16,7 @@ from typing import Dict, List, Tuple
 
 import numpy as np
 
-from ._common import ByteReader, concat_strands, fail, read_bytes, strand_tangents
+from ams_torch.grooms.io._common import ByteReader, concat_strands, fail, read_bytes, strand_tangents
 
 
 def _read(path, floats_per_point: int, what: str) -> Tuple[List[np.ndarray], Dict]:

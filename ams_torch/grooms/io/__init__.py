@@ -29,14 +29,14 @@ from typing import Optional
 import numpy as np
 import torch
 
-from ..groom import Groom, resample_strands
-from ._common import GroomFileError, check_points
-from .cyhair import read_hair, write_hair
-from .npz import read_npz, write_npz
-from .ply import read_ply, write_ply
-from .tressfx import read_tfx
-from .usc import read_bin, read_data, write_bin, write_data
-from .usd import read_usd, write_usd
+from ams_torch.grooms.groom import Groom, resample_strands
+from ams_torch.grooms.io._common import GroomFileError, check_points
+from ams_torch.grooms.io.cyhair import read_hair, write_hair
+from ams_torch.grooms.io.npz import read_npz, write_npz
+from ams_torch.grooms.io.ply import read_ply, write_ply
+from ams_torch.grooms.io.tressfx import read_tfx
+from ams_torch.grooms.io.usc import read_bin, read_data, write_bin, write_data
+from ams_torch.grooms.io.usd import read_usd, write_usd
 
 __all__ = ["read_groom", "write_groom", "GroomFileError", "FORMATS"]
 
@@ -75,7 +75,7 @@ def read_groom(path, resample: Optional[int] = None) -> Groom:
             length (``rest_positions`` (S, N, 3), ``strands`` None).
 
     Returns:
-        :class:`~ams_torch.groom.Groom` (metres if the file is; root binding only from
+        :class:`~ams_torch.grooms.groom.Groom` (metres if the file is; root binding only from
         ``.npz`` and USD files written by ams_torch), ``metadata["source"]`` the path and
         ``metadata["format"]`` the extension.
 

@@ -3,7 +3,7 @@
 Every function is batched over any leading dims ``...`` (scenes) and strands ``S``:
 positions are ``(..., S, N, 3)`` metres. Forces are in newtons. Where a term is treated
 implicitly, the function also returns the 3×3 stiffness blocks (N/m) that the assembly
-in :mod:`ams_torch.integrator` puts into the strand matrix.
+in :mod:`ams_torch.sim.integrator` puts into the strand matrix.
 """
 from __future__ import annotations
 

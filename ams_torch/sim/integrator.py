@@ -1,6 +1,6 @@
 """Time integration of one frame (SPEC §4, paper Algorithm 1) as pure functions.
 
-``step(model, params, state, pose)`` returns a new :class:`~ams_torch.model.State`; nothing
+``step(model, params, state, pose)`` returns a new :class:`~ams_torch.sim.model.State`; nothing
 is modified in place. Per frame of length Δt with M substeps (Δt' = Δt/M), each substep
 assembles and solves the linearised backward-Euler system in its symmetric form
 
@@ -14,8 +14,8 @@ Profiler labels (``torch.profiler.record_function``; no effect on the results) m
 of a frame: ``ams_torch.springs`` (edge/bend/torsion forces and Jacobian blocks),
 ``ams_torch.biphasic`` (integrity and angular couplings to the ghosts), ``ams_torch.assembly``
 (the whole :func:`assemble_system`, the two above included), ``ams_torch.solve`` (the banded
-solve) and ``ams_torch.inextensibility`` (follow-the-leader). :func:`ams_torch.scene.simulate`
-adds ``ams_torch.step``, ``ams_torch.hair_hair`` and ``ams_torch.collisions``.
+solve) and ``ams_torch.inextensibility`` (follow-the-leader). :func:`ams_torch.apps.scene.simulate`
+adds ``ams_torch.step``, ``ams_torch.stages.hair_hair`` and ``ams_torch.collisions``.
 """
 from __future__ import annotations
 
@@ -25,13 +25,13 @@ import torch
 import torch.nn.functional as F
 from torch.profiler import record_function
 
-from . import forces
-from .constraints import follow_the_leader
-from .model import Model, State
-from .ops import solve_banded
-from .params import Params
-from .pose import Pose
-from .solver import banded_matvec
+from ams_torch.sim import forces
+from ams_torch.sim.inextensibility import follow_the_leader
+from ams_torch.sim.model import Model, State
+from ams_torch.solver.op import solve_banded
+from ams_torch.sim.params import Params
+from ams_torch.geometry.pose import Pose
+from ams_torch.solver.reference import banded_matvec
 
 __all__ = ["assemble_system", "substep", "local_segment_length", "integrity_plastic_update", "inextensibility", "step",
            "SimulationDiverged", "check_state", "resolve_pose"]

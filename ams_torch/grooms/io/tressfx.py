@@ -26,7 +26,7 @@ import struct
 
 import numpy as np
 
-from ._common import ByteReader, fail, read_bytes
+from ams_torch.grooms.io._common import ByteReader, fail, read_bytes
 
 _HEADER = struct.Struct("<f7I32I")
 assert _HEADER.size == 160

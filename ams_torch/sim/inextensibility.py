@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-from .forces import safe_normalize
+from ams_torch.sim.forces import safe_normalize
 
 __all__ = ["follow_the_leader", "max_stretch"]
 

@@ -1,6 +1,6 @@
 """Dataset generation: simulate a recipe's sequences into sharded HDF5 files, resumably.
 
-The job list of a recipe (:mod:`ams_torch.recipe`) is its batch groups: group g simulates
+The job list of a recipe (:mod:`ams_torch.apps.recipe`) is its batch groups: group g simulates
 sequences g·batch … (g+1)·batch − 1 as one batched run (one groom, B head motions). Shard i of
 n takes the groups with g % n == i, so every sharding simulates the same groups the same way
 and any shard on any machine produces the same data.
@@ -27,9 +27,9 @@ from typing import Callable, Dict, List, Optional, Sequence
 import numpy as np
 import torch
 
-from . import __version__
-from .data import FORMAT, FORMAT_VERSION, POSE_FIELDS, array_digest, sequence_checksum, sequence_name
-from .recipe import Recipe, RecipeError
+from ams_torch import __version__
+from ams_torch.apps.data import FORMAT, FORMAT_VERSION, POSE_FIELDS, array_digest, sequence_checksum, sequence_name
+from ams_torch.apps.recipe import Recipe, RecipeError
 
 __all__ = ["shard_filename", "simulate_group", "generate_shard", "generate", "generate_ray", "start_local_ray",
            "parse_shard"]
@@ -70,15 +70,15 @@ def simulate_group(recipe: Recipe, group: int, device=None, on_frame: Optional[C
     """Simulate batch group ``group`` of a recipe as one batched run.
 
     ``on_start(run, specs)`` is called once the simulator is built (run: the
-    :class:`~ams_torch.scene.BuiltScene`; specs: the B sequence specs). ``on_frame(k, state)`` is
+    :class:`~ams_torch.apps.scene.BuiltScene`; specs: the B sequence specs). ``on_frame(k, state)`` is
     called after each frame k (state.x, state.v: (B, S, N, 3) m, m/s, world; state.pose: the B
     head poses). Returns ``{"run": BuiltScene, "specs": [sequence specs],
     "group": group spec, "ms_per_frame": float}``.
     """
-    from .motion import make_motion
-    from .pose import Pose
-    from .scene import build
-    from .wind import Wind
+    from ams_torch.apps.motion import make_motion
+    from ams_torch.geometry.pose import Pose
+    from ams_torch.apps.scene import build
+    from ams_torch.stages.wind import Wind
 
     dtype = _DTYPES[recipe.dtype_name]
     device = torch.device(device) if device is not None else torch.device("cpu")
@@ -183,7 +183,7 @@ def _write_group(recipe: Recipe, group: int, path: str, device=None) -> float:
 def _write_group_file(recipe: Recipe, group: int, tmp: str, device=None) -> float:
     import h5py
 
-    from .groom import fps_order
+    from ams_torch.grooms.groom import fps_order
 
     writers: List[_SequenceWriter] = []
     guides = recipe.store["guides"]

@@ -9,7 +9,7 @@ the world. :func:`resolve_world_poses` turns both kinds into world poses for a f
 
 Analytic colliders (:class:`SphereCollider`, :class:`HollowSphereCollider`,
 :class:`CapsuleCollider`, :class:`PlaneCollider`) evaluate σ exactly; :class:`MeshCollider`
-samples an :class:`~ams_torch.sdf.SDFGrid` built from a closed mesh (built on first use, cached
+samples an :class:`~ams_torch.geometry.sdf.SDFGrid` built from a closed mesh (built on first use, cached
 on disk), so a scene without colliders never builds a grid.
 """
 from __future__ import annotations
@@ -21,8 +21,8 @@ from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple, Uni
 import torch
 import torch.nn.functional as F
 
-from .pose import Pose
-from .sdf import SDFGrid
+from ams_torch.geometry.pose import Pose
+from ams_torch.geometry.sdf import SDFGrid
 
 __all__ = [
     "Collider",
@@ -70,7 +70,7 @@ class Collider(ABC):
 
     Attributes:
         friction: Coulomb coefficient μ ≥ 0 (dimensionless).
-        pose: :class:`~ams_torch.pose.Pose` of the collider's local frame, relative to the head
+        pose: :class:`~ams_torch.geometry.pose.Pose` of the collider's local frame, relative to the head
             when ``follow_head`` else in the world (default identity, static). Its velocities (if
             any) are the collider's own motion; ``None`` velocities mean static.
         follow_head: whether the collider moves rigidly with the head.
@@ -251,7 +251,7 @@ class HollowSphereCollider(Collider):
 
 
 class MeshCollider(Collider):
-    """A closed triangle mesh (or a ready :class:`~ams_torch.sdf.SDFGrid`) as a collider.
+    """A closed triangle mesh (or a ready :class:`~ams_torch.geometry.sdf.SDFGrid`) as a collider.
 
     Args:
         mesh: watertight ``trimesh.Trimesh`` in metres (its own frame = the collider's local
@@ -278,7 +278,7 @@ class MeshCollider(Collider):
             raise TypeError("MeshCollider needs a trimesh.Trimesh (vertices, faces) or an SDFGrid")
         if self.mesh is not None and hasattr(self.mesh, "is_watertight") and not self.mesh.is_watertight:
             raise ValueError("MeshCollider: the mesh is not watertight; load it with "
-                             "ams_torch.head.load_mesh(path, repair=True) or close it first")
+                             "ams_torch.geometry.load_mesh(path, repair=True) or close it first")
         self.resolution, self.padding = int(resolution), padding
         self.projection_iterations = int(projection_iterations)
         self._converted: Dict[Tuple[torch.device, torch.dtype], SDFGrid] = {}
@@ -559,7 +559,7 @@ class CollisionStage:
             not add the stage at all).
         free: (N,) bool, True for simulated particles (e.g. ``~model.pinned``); None = all.
         restore_lengths: optional ``f(x, v, head_pose, dt) -> (x, v)`` that restores the edge
-            lengths (e.g. :func:`ams_torch.integrator.inextensibility`). When given, the stage
+            lengths (e.g. :func:`ams_torch.sim.integrator.inextensibility`). When given, the stage
             runs ``collide`` → ``restore_lengths`` → ``collide`` with Δt = 0 (push-out of what
             the length pass moved back inside), ``restore_rounds`` times. Without it, contact
             response (friction moves a particle by Δt (v' − v), push-out by the depth) leaves

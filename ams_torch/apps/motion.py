@@ -20,7 +20,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from .pose import Pose, axis_angle_to_matrix, matrix_to_axis_angle
+from ams_torch.geometry.pose import Pose, axis_angle_to_matrix, matrix_to_axis_angle
 
 __all__ = ["Motion", "Static", "Shake", "Nod", "Spin", "RollerCoaster", "Keyframes", "recorded",
            "make_motion", "MOTIONS"]
