@@ -24,6 +24,7 @@ from ams_torch.solver.reference import banded_matvec, banded_to_dense, solve_ban
 
 REPO = Path(__file__).resolve().parents[1]
 CSRC = REPO / "ams_torch" / "solver" / "csrc" / "banded"
+CSRC_ROOT = CSRC.parent
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 H = 1.0 / 60.0  # time step of the assembled systems, s
 
@@ -309,19 +310,40 @@ def test_fallback_without_native(tmp_path):
     assert not (tmp_path / "cache").exists() or not any((tmp_path / "cache").iterdir())
 
 
-def test_nvcc_compiles_cuda_kernel(tmp_path):
-    """The CUDA kernel is plain CUDA C++ (no torch headers): CI compiles it with nvcc."""
+CUDA_SOURCES = sorted(CSRC_ROOT.glob("*/*.cu"))
+CUDA_BINDINGS = sorted(CSRC_ROOT.glob("*/*_cuda_binding.cpp"))
+INCLUDE_DIRS = [f"-I{d}" for d in sorted(CSRC_ROOT.iterdir()) if d.is_dir()]
+
+
+def _local_includes(path: Path, seen=None) -> list:
+    """#include lines of a source and, recursively, of the csrc/ headers it includes."""
+    seen = set() if seen is None else seen
+    out = []
+    for line in path.read_text().splitlines():
+        if not line.startswith("#include"):
+            continue
+        out.append(line)
+        name = line.split()[1].strip('"<>')
+        for d in CSRC_ROOT.iterdir():
+            h = d / name
+            if d.is_dir() and h.exists() and h not in seen:
+                seen.add(h)
+                out += _local_includes(h, seen)
+    return out
+
+
+@pytest.mark.parametrize("src", CUDA_SOURCES, ids=lambda p: p.name)
+def test_nvcc_compiles_cuda_kernel(tmp_path, src):
+    """Every CUDA kernel file is plain CUDA C++ (no torch headers): CI compiles each with nvcc."""
     nvcc = shutil.which("nvcc")
     if nvcc is None:
         pytest.skip("nvcc not found")
-    src = CSRC / "banded_cuda.cu"
-    includes = [line for f in (src, CSRC / "banded_cuda.h", CSRC / "banded_cholesky.h")
-                for line in f.read_text().splitlines() if line.startswith("#include")]
+    includes = _local_includes(src)
     assert not [i for i in includes if "torch" in i or "ATen" in i or "c10" in i], includes
-    obj = tmp_path / "banded_cuda.o"
-    cmd = [nvcc, "-std=c++17", "-O3", "-c", str(src), "-o", str(obj), "-I", str(CSRC),
-           "-gencode", "arch=compute_80,code=sm_80", "-gencode", "arch=compute_90,code=sm_90"]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    obj = tmp_path / (src.stem + ".o")
+    cmd = [nvcc, "-std=c++17", "-O3", "-c", str(src), "-o", str(obj)] + INCLUDE_DIRS + [
+        "-gencode", "arch=compute_80,code=sm_80", "-gencode", "arch=compute_90,code=sm_90"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
     assert obj.stat().st_size > 0
 
@@ -339,7 +361,8 @@ def _cuda_include_dir():
     return None
 
 
-def test_cuda_binding_compiles_against_torch_headers(tmp_path):
+@pytest.mark.parametrize("binding", CUDA_BINDINGS, ids=lambda p: p.name)
+def test_cuda_binding_compiles_against_torch_headers(tmp_path, binding):
     """The torch binding of the CUDA kernel is only built with a CUDA torch; CI checks that it
     compiles (syntax and types) against this torch's headers and the CUDA toolkit's."""
     cxx = shutil.which(os.environ.get("CXX", "c++"))
@@ -355,8 +378,8 @@ def test_cuda_binding_compiles_against_torch_headers(tmp_path):
         fake.mkdir(parents=True)
         (fake / "cuda_cmake_macros.h").write_text("#pragma once\n")
         includes = [str(tmp_path)] + includes
-    cmd = [cxx, "-std=c++20", "-fsyntax-only", str(CSRC / "banded_cuda_binding.cpp"), f"-I{CSRC}",
-           f"-I{cuda_inc}"] + [f"-I{p}" for p in includes]
+    cmd = [cxx, "-std=c++20", "-fsyntax-only", str(binding)] + INCLUDE_DIRS + [f"-I{cuda_inc}"] + [
+        f"-I{p}" for p in includes]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-4000:]
 

@@ -47,7 +47,8 @@ import torch
 
 __all__ = ["native_status", "native_enabled", "cpu_op", "cuda_op", "NativeBuildWarning"]
 
-CSRC = Path(__file__).resolve().parent / "csrc" / "banded"
+CSRC_ROOT = Path(__file__).resolve().parent / "csrc"
+CSRC = CSRC_ROOT / "banded"
 ENV_ENABLE = "AMS_TORCH_NATIVE"
 ENV_CACHE = "AMS_TORCH_CACHE"
 ENV_LOCK_STALE = "AMS_TORCH_BUILD_LOCK_STALE_S"
@@ -56,14 +57,18 @@ LOCK_NAME = "ams_build.lock"   # ours: JSON {"pid", "host", "time"}
 TORCH_LOCK_NAME = "lock"       # torch.utils.file_baton.FileBaton inside the build directory
 MARKER_NAME = "build.json"     # written after a successful build: its inputs and the library
 
-# backend -> (extension name, sources compiled, headers they include, torch.ops namespace)
+# backend -> (extension name, sources compiled, headers they include (paths relative to csrc/),
+#             torch.ops namespace, device type). Every csrc/ folder is on the include path.
+# One backend per op group and device, so that a group that fails to build leaves the others.
 _BACKENDS = {
-    "cpu": ("ams_torch_banded_cpu", ("banded_cpu.cpp",), ("banded_cholesky.h", "banded_simd.h"), "ams_torch_cpu"),
+    "cpu": ("ams_torch_banded_cpu", ("banded/banded_cpu.cpp",), ("banded/banded_cholesky.h", "banded/banded_simd.h"),
+            "ams_torch_cpu", "cpu"),
     "cuda": (
         "ams_torch_banded_cuda",
-        ("banded_cuda_binding.cpp", "banded_cuda.cu"),
-        ("banded_cholesky.h", "banded_cuda.h"),
+        ("banded/banded_cuda_binding.cpp", "banded/banded_cuda.cu"),
+        ("banded/banded_cholesky.h", "banded/banded_cuda.h"),
         "ams_torch_cuda",
+        "cuda",
     ),
 }
 
@@ -96,14 +101,22 @@ def cache_root() -> Path:
     return Path(env).expanduser() if env else Path.home() / ".cache" / "ams_torch"
 
 
+def native_ops(kind: str):
+    """The ``torch.ops`` namespace of backend ``kind`` (a key of ``_BACKENDS``), building and
+    loading its library on first call; None when it cannot be had (one warning per process)."""
+    return _get(kind)
+
+
 def cpu_op() -> Optional[Callable]:
     """``torch.ops.ams_torch_cpu.solve_banded`` (building it on first call), or None."""
-    return _get("cpu")
+    ns = _get("cpu")
+    return None if ns is None else ns.solve_banded
 
 
 def cuda_op() -> Optional[Callable]:
     """``torch.ops.ams_torch_cuda.solve_banded`` (building it on first call), or None."""
-    return _get("cuda")
+    ns = _get("cuda")
+    return None if ns is None else ns.solve_banded
 
 
 def native_status(build: bool = False) -> dict:
@@ -119,9 +132,9 @@ def native_status(build: bool = False) -> dict:
         ``build_seconds`` (compile + load time, ~0 when cached) and ``flags``.
     """
     if build:
-        cpu_op()
-        if torch.cuda.is_available():
-            cuda_op()
+        for kind, spec in _BACKENDS.items():
+            if spec[4] == "cpu" or torch.cuda.is_available():
+                _get(kind)
     with _lock:
         out = {"enabled": native_enabled(), "cache_dir": str(cache_root())}
         for kind in _BACKENDS:
@@ -170,8 +183,8 @@ def _warn_once(kind: str, reason: str) -> None:
         return
     _warned = True
     warnings.warn(
-        f"ams_torch: native {kind.upper()} banded solver unavailable ({reason}); using the plain-torch "
-        "solver, which is much slower. ams_torch.native_status() has the details; set "
+        f"ams_torch: native kernels ({kind}) unavailable ({reason}); using the plain-torch "
+        "path, which is much slower. ams_torch.native_status() has the details; set "
         f"{ENV_ENABLE}=0 to choose the plain solver explicitly.",
         NativeBuildWarning,
         stacklevel=4,
@@ -182,7 +195,7 @@ def _static_reason(kind: str) -> Optional[str]:
     """Why ``kind`` cannot be built, from facts known without compiling, or None."""
     if not native_enabled():
         return f"disabled by {ENV_ENABLE}={os.environ.get(ENV_ENABLE)}"
-    if kind == "cuda":
+    if _BACKENDS[kind][4] == "cuda":
         if torch.version.cuda is None:
             return "this torch was built without CUDA"
         if not torch.cuda.is_available():
@@ -201,13 +214,13 @@ def _build_and_load(kind: str, st: dict) -> Callable:
     reason = _static_reason(kind)
     if reason:
         raise _Unavailable(reason)
-    name, sources, headers, namespace = _BACKENDS[kind]
-    cflags, cuda_flags, ldflags, key_parts = _build_config(kind)
+    name, sources, headers, namespace, device = _BACKENDS[kind]
+    cflags, cuda_flags, ldflags, key_parts = _build_config(device)
     digest = hashlib.sha256()
     digest.update(json.dumps(key_parts, sort_keys=True).encode())
     for fname in sources + headers:
         digest.update(fname.encode())
-        digest.update((CSRC / fname).read_bytes())
+        digest.update((CSRC_ROOT / fname).read_bytes())
     tag = f"{kind}-torch{torch.__version__}-cuda{torch.version.cuda or 'none'}-{digest.hexdigest()[:16]}"
     build_dir = cache_root() / tag.replace("+", "_")
     st["build_dir"] = str(build_dir)
@@ -223,14 +236,14 @@ def _build_and_load(kind: str, st: dict) -> Callable:
 
                 if not cpp_extension.is_ninja_available():
                     raise _Unavailable("ninja is not installed (pip install ninja)")
-                with _build_env(kind):
+                with _build_env(device):
                     path = cpp_extension.load(
                         name=name,
-                        sources=[str(CSRC / s) for s in sources],
+                        sources=[str(CSRC_ROOT / s) for s in sources],
                         extra_cflags=cflags,
                         extra_cuda_cflags=cuda_flags,
                         extra_ldflags=ldflags,
-                        extra_include_paths=[str(CSRC)],
+                        extra_include_paths=[str(d) for d in sorted(CSRC_ROOT.iterdir()) if d.is_dir()],
                         build_directory=str(build_dir),
                         is_python_module=False,
                         verbose=False,
@@ -239,7 +252,7 @@ def _build_and_load(kind: str, st: dict) -> Callable:
                 (build_dir / MARKER_NAME).write_text(json.dumps({"library": library.name, "key": key_parts}))
     torch.ops.load_library(str(library))
     st["library"] = str(library)
-    return getattr(getattr(torch.ops, namespace), "solve_banded")
+    return getattr(torch.ops, namespace)
 
 
 def _cached_library(build_dir: Path) -> Optional[Path]:
