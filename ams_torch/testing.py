@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
 
 from ams_torch.geometry.pose import Pose, axis_angle_to_matrix

@@ -298,8 +298,6 @@ def generate_shard(recipe: Recipe, out: str, shard: int = 0, num_shards: int = 1
 
 def _assemble(recipe: Recipe, parts: List[str], final: str, shard: int, num_shards: int) -> None:
     """Copy the finished groups into the shard file (temporary name, then rename)."""
-    import h5py
-
     tmp = f"{final}.tmp{os.getpid()}"
     try:
         _copy_groups(recipe, parts, tmp, shard, num_shards)

@@ -15,8 +15,7 @@ from __future__ import annotations
 
 import functools
 import logging
-import os
-from typing import Dict, Union
+from typing import Dict
 
 import numpy as np
 import torch
