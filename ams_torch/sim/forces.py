@@ -12,6 +12,7 @@ import torch.nn.functional as F
 
 __all__ = [
     "spring_forces",
+    "geometric_stiffness_factor",
     "integrity_force",
     "integrity_elongation_law",
     "integrity_force_nonhookean",
@@ -41,7 +42,7 @@ def _pad_pairs(f: torch.Tensor, k: int, front: bool) -> torch.Tensor:
     return F.pad(f, pad)
 
 
-def spring_forces(x: torch.Tensor, rest_length: torch.Tensor, stiffness, k: int):
+def spring_forces(x: torch.Tensor, rest_length: torch.Tensor, stiffness, k: int, geometric: bool = False):
     """Linear springs between particles i and i+k (edge k=1, bending k=2, torsion k=3; SPEC §2).
 
     Force on i from j = i+k: ``κ (|x_j − x_i| − l) d̂_ij``, and the opposite on j.
@@ -51,18 +52,33 @@ def spring_forces(x: torch.Tensor, rest_length: torch.Tensor, stiffness, k: int)
         rest_length: (S, N−k) rest lengths l, m.
         stiffness: κ, N/m (float or tensor broadcastable to (..., S, N−k)).
         k: neighbour offset, 1 ≤ k < N.
+        geometric: also return the positive part of the geometric stiffness (SPEC §4).
     Returns:
         force: (..., S, N, 3) N, the springs' force on every particle.
-        block: (..., S, N−k, 3, 3) N/m, ``κ D_ij`` with ``D = d̂ d̂ᵀ`` (directions frozen), the
-            stiffness of each pair used by the linearised implicit step.
+        block: (..., S, N−k, 3, 3) N/m, the stiffness of each pair used by the linearised
+            implicit step: ``κ D_ij`` with ``D = d̂ d̂ᵀ`` (directions frozen), plus with
+            ``geometric`` ``κ (1 − l/|d|)₊ (I − D)`` (:func:`geometric_stiffness_factor`).
     """
     d = x[..., k:, :] - x[..., :-k, :]
     unit, length = safe_normalize(d)
     kappa_pair = torch.as_tensor(stiffness, dtype=x.dtype, device=x.device)  # scalar, (S,1) or (S,N-k)
     f_pair = (kappa_pair * (length - rest_length))[..., None] * unit  # on the lower particle i
     force = _pad_pairs(f_pair, k, front=True) - _pad_pairs(f_pair, k, front=False)
-    block = kappa_pair[..., None, None] * unit[..., :, None] * unit[..., None, :]
+    dd = unit[..., :, None] * unit[..., None, :]
+    if geometric:
+        g = geometric_stiffness_factor(length, rest_length)[..., None, None]
+        eye = torch.eye(3, dtype=x.dtype, device=x.device)
+        dd = dd + g * (eye - dd)
+    block = kappa_pair[..., None, None] * dd
     return force, block
+
+
+def geometric_stiffness_factor(length: torch.Tensor, rest_length: torch.Tensor) -> torch.Tensor:
+    """``(1 − l/|d|)₊``, dimensionless, (..., S, N−k): the positive part of the geometric stiffness
+    of a stretched spring relative to κ (SPEC §4); 0 for a compressed or collapsed spring.
+    length |d| and rest_length l in metres."""
+    safe = torch.where(length > 0, length, torch.ones_like(length))
+    return torch.where(length > rest_length, 1.0 - rest_length / safe, torch.zeros_like(length))
 
 
 def integrity_force(x: torch.Tensor, ghost: torch.Tensor, stiffness) -> torch.Tensor:
@@ -123,7 +139,7 @@ def gravity_force(mass: torch.Tensor, gravity: torch.Tensor) -> torch.Tensor:
     return mass[..., None] * gravity
 
 
-def integrity_elongation_law(elongation: torch.Tensor, transition: float, breaking: float, soft_ratio: float):
+def integrity_elongation_law(elongation: torch.Tensor, transition, breaking, soft_ratio):
     """The non-Hookean integrity curve (SPEC §7, paper Fig. 3) in units of κ_I · L.
 
     With elongation e (dimensionless, distance / local rest segment length L), t = transition,
@@ -131,19 +147,22 @@ def integrity_elongation_law(elongation: torch.Tensor, transition: float, breaki
 
     - e ≤ t: Hookean, ``φ = e``, slope 1;
     - t < e ≤ b: softening, ``φ = e − (1 − ρ)(e − t)² / (2 (b − t))``, slope falling from 1 to ρ;
-    - e > b: yield, ``φ = φ(b)``, slope 0 (the plastic update then moves the ghost).
+    - e > b: yield, ``φ = φ(b)`` (the plastic update then moves the ghost).
 
-    Returns (φ, dφ/de), both shaped like ``elongation``; the force magnitude is κ_I L φ.
-    φ is continuous, C¹ at the transition and non-decreasing, so the tangent stiffness is never
-    negative.
+    Returns (φ, s), both shaped like ``elongation``; the force magnitude is κ_I L φ. ``s`` is the
+    slope used for the implicit tangent: dφ/de below the breaking point, and its value from
+    below, ρ, at and beyond it (SPEC §7). The plastic update puts yielded particles exactly on
+    e = b, so a slope that jumped there (ρ below, 0 above) would let rounding pick the matrix
+    (measured: a 1e-12 m/s perturbation grew to 2.8 mm in 30 frames); this slope is continuous
+    in e. φ is continuous, C¹ at the transition and non-decreasing, so the tangent is never
+    negative. t, b, ρ: floats or tensors broadcastable to ``elongation`` (learnable).
     """
     span = breaking - transition
     over = (elongation - transition).clamp(min=0.0)
-    over_c = over.clamp(max=span)
-    phi = elongation.clamp(max=transition) + over_c - (1.0 - soft_ratio) * over_c * over_c / (2.0 * span)
-    slope = torch.where(elongation <= transition, torch.ones_like(elongation),
-                        torch.where(elongation <= breaking, 1.0 - (1.0 - soft_ratio) * over_c / span,
-                                    torch.zeros_like(elongation)))
+    over_c = torch.minimum(over, torch.as_tensor(span, dtype=elongation.dtype, device=elongation.device))
+    below = torch.minimum(elongation, torch.as_tensor(transition, dtype=elongation.dtype, device=elongation.device))
+    phi = below + over_c - (1.0 - soft_ratio) * over_c * over_c / (2.0 * span)
+    slope = 1.0 - (1.0 - soft_ratio) * over_c / span
     return phi, slope
 
 

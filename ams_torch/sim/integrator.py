@@ -105,7 +105,7 @@ def _assemble_system(model: Model, params: Params, x, v, ghost, ghost_velocity, 
     with record_function("ams_torch.springs"):
         for k in (1, 2, 3):
             kappa = params.stretch_stiffness * scales[k - 1]
-            f, stiff = forces.spring_forces(x, model.rest_lengths[k - 1], kappa, k)
+            f, stiff = forces.spring_forces(x, model.rest_lengths[k - 1], kappa, k, params.geometric_stiffness)
             force = force + f
             hk = (h * h) * stiff  # (..., S, N-k, 3, 3)
             diag = diag + _pad_n(hk, 0, k) + _pad_n(hk, k, 0)
