@@ -5,8 +5,8 @@ import pytest
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from ams_torch.stages.hair_hair import (HairHair, _detailed_collisions, build_hair_hair, grid_density,
-                                 hair_hair_stage, make_stage)
+from ams_torch.stages.hair_hair import HairHair, build_hair_hair, grid_density, hair_hair_stage, make_stage
+from ams_torch.stages.hair_hair.detailed import detailed_collisions
 from ams_torch.geometry.pose import Pose
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
@@ -283,7 +283,7 @@ def test_detailed_collisions_match_brute_force():
     free = torch.ones(n, dtype=torch.bool)
     free[0] = False
     free_p = free.repeat(s)
-    dx, dv = _detailed_collisions(grid, x.reshape(1, -1, 3), v.reshape(1, -1, 3), m.reshape(1, -1), free_p, DT)
+    dx, dv = detailed_collisions(grid, x.reshape(1, -1, 3), v.reshape(1, -1, 3), m.reshape(1, -1), free_p)
 
     xf, vf, mf = x.reshape(-1, 3), v.reshape(-1, 3), m.reshape(-1)
     sid = torch.arange(s).repeat_interleave(n)

@@ -1,0 +1,164 @@
+"""The hair–hair stage: one frame of P2G → pressure → G2P (→ detailed collisions), SPEC §6."""
+from __future__ import annotations
+
+import math
+from typing import Callable, Optional
+
+import torch
+
+from ams_torch.geometry.pose import Pose
+from ams_torch.stages.hair_hair.config import HairHairGrid
+from ams_torch.stages.hair_hair.detailed import detailed_collisions
+from ams_torch.stages.hair_hair.native import NATIVE_DTYPES, g2p_op, p2g_op, pressure_op
+from ams_torch.stages.hair_hair.pressure import pressure_torch
+from ams_torch.stages.hair_hair.transfer import g2p_torch, p2g_torch, scene_frame, to_head
+
+__all__ = ["BACKENDS", "hair_hair_stage", "make_stage"]
+
+BACKENDS = ("auto", "native", "torch")
+
+
+def _inputs(grid: HairHairGrid, x: torch.Tensor, v: torch.Tensor, mass, free: Optional[torch.Tensor]):
+    """Validate (metadata only) and flatten: x, v (B, P, 3), m (B, P), free (N,) bool, lead dims."""
+    if x.dim() < 3 or x.shape[-1] != 3:
+        raise ValueError(f"x must have shape (..., S, N, 3); got {tuple(x.shape)}")
+    s, n = x.shape[-3], x.shape[-2]
+    if (s, n) != (grid.num_strands, grid.num_particles):
+        raise ValueError(f"x has (S, N) = ({s}, {n}) but the grid was built for "
+                         f"({grid.num_strands}, {grid.num_particles})")
+    if not isinstance(v, torch.Tensor) or v.shape != x.shape:
+        raise ValueError(f"v must be a tensor of the shape of x {tuple(x.shape)}; got "
+                         f"{tuple(v.shape) if isinstance(v, torch.Tensor) else type(v).__name__}")
+    if v.dtype != x.dtype or v.device != x.device:
+        raise ValueError(f"v must have the dtype and device of x ({x.dtype}, {x.device}); got {v.dtype}, {v.device}")
+    if not x.dtype.is_floating_point:
+        raise ValueError(f"x must be a floating-point tensor; got {x.dtype}")
+    lead = x.shape[:-3]
+    b, p = math.prod(lead), s * n
+    mass = torch.as_tensor(mass, device=x.device, dtype=x.dtype)
+    try:
+        m = mass.expand(*lead, s, n).reshape(b, p)
+    except RuntimeError:
+        raise ValueError(f"mass of shape {tuple(mass.shape)} does not broadcast to {tuple(lead) + (s, n)}")
+    if free is None:
+        free = torch.ones(n, dtype=torch.bool, device=x.device)
+    elif not isinstance(free, torch.Tensor) or free.shape != (n,):
+        raise ValueError(f"free must be a tensor of shape ({n},); got "
+                         f"{tuple(free.shape) if isinstance(free, torch.Tensor) else type(free).__name__}")
+    else:
+        free = free.to(device=x.device, dtype=torch.bool)
+    return x.reshape(b, p, 3), v.reshape(b, p, 3), m, free, lead
+
+
+def _dt_tensor(dt, like: torch.Tensor) -> torch.Tensor:
+    if isinstance(dt, torch.Tensor):
+        if dt.dim() != 0 or not dt.dtype.is_floating_point:
+            raise ValueError(f"dt must be a number or a 0-d floating-point tensor; got shape {tuple(dt.shape)}, "
+                             f"{dt.dtype}")
+        return dt.to(device=like.device, dtype=like.dtype)
+    if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not (math.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be a positive number of seconds; got {dt!r}")
+    return torch.full((), float(dt), device=like.device, dtype=like.dtype)
+
+
+def _use_native(backend: str, tensors, dtype) -> bool:
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}; got {backend!r}")
+    if backend == "torch":
+        return False
+    grad = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+    if backend == "native":
+        if grad:
+            raise ValueError("hair_hair backend='native' has no gradient: an input requires grad (use 'auto' "
+                             "or 'torch', or call under torch.no_grad())")
+        if dtype not in NATIVE_DTYPES:
+            raise ValueError(f"hair_hair backend='native' takes float32 or float64; got {dtype}")
+        return True
+    return not grad and dtype in NATIVE_DTYPES
+
+
+def hair_hair_stage(grid: Optional[HairHairGrid], x: torch.Tensor, v: torch.Tensor, mass,
+                    head_pose: Optional[Pose], dt, free: Optional[torch.Tensor] = None, backend: str = "auto"):
+    """Hair–hair interaction for one frame (SPEC §6), run after inextensibility.
+
+    Args:
+        grid: from :meth:`HairHair.build`; ``None`` returns ``(x, v)`` untouched (disabled).
+        x: (..., S, N, 3) metres, world positions at the end of the frame.
+        v: (..., S, N, 3) m/s, world velocities at the end of the frame (same dtype/device).
+        mass: kg, broadcastable to (..., S, N).
+        head_pose: head :class:`Pose` at the end of the frame (world ← head frame, batch dims
+            broadcastable to ``...``); missing velocities count as zero; None = identity at rest.
+        dt: frame length, seconds: a positive number or a 0-d tensor (not checked for sign: no
+            host sync).
+        free: (N,) bool, particles the stage may move (default: all). Pinned particles still
+            contribute mass to the grid but are returned unchanged.
+        backend: ``"auto"`` (default): the native kernels when they are built, the dtype is
+            float32/float64 and nothing requires grad (``AMS_TORCH_NATIVE=0`` disables them);
+            otherwise the torch definition. ``"native"``: the native kernels or an error.
+            ``"torch"``: the torch definition (differentiable).
+    Returns:
+        (x', v'): (..., S, N, 3) metres and m/s, with ``x' = x + dt (v' − v)`` for the grid part
+        (plus the position push of detailed collisions, when enabled).
+
+    No host synchronisation, no data-dependent branch or shape: capturable by
+    ``torch.compile(fullgraph=True)`` and CUDA graphs. Detailed collisions always run in torch,
+    after the grid part.
+    """
+    if grid is None:
+        return x, v
+    cfg = grid.config
+    xf, vf, m, free, lead = _inputs(grid, x, v, mass, free)
+    dtt = _dt_tensor(dt, x)
+    frame = scene_frame(head_pose, lead, xf.shape[0], x.dtype, x.device)
+    origin = grid.origin.to(x.dtype)
+    target = grid.target_density.to(x.dtype)
+    h, r, pic = grid.cell_size, grid.resolution, 1.0 - cfg.flip
+    solve = (cfg.pressure_iterations, cfg.jacobi_omega, cfg.volume_stiffness, pic)
+    if _use_native(backend, (xf, vf, m, frame, origin, target, dtt), x.dtype):
+        strict = backend == "native"
+        faces = p2g_op(xf.contiguous(), vf.contiguous(), m.contiguous(), frame.contiguous(), origin.contiguous(),
+                       h, r, strict)
+        _, field = pressure_op(faces, target, dtt, h, r, *solve, strict)
+        x1, v1 = g2p_op(xf.contiguous(), vf.contiguous(), field, frame.contiguous(), origin.contiguous(), free, dtt,
+                        h, r, pic, strict)
+    else:
+        stencils: list = []
+        faces = p2g_torch(xf, vf, m, frame, origin, h, r, stencils)
+        _, field = pressure_torch(faces, target, dtt, h, r, *solve)
+        x1, v1 = g2p_torch(xf, vf, field, frame, origin, free, dtt, h, r, pic, stencils)
+    if cfg.detailed_collisions:
+        x1, v1 = _after_detailed_collisions(grid, xf, x1, v1, m, frame, free)
+    return x1.reshape(x.shape), v1.reshape(v.shape)
+
+
+def _after_detailed_collisions(grid, x, x1, v1, m, frame, free):
+    """Detailed collisions on the grid part's output x1, v1 (B, P, 3), in the head frame; the
+    relative velocity is taken against the rigid motion at the input positions x, as the grid
+    part did. Returns the corrected (x, v) (B, P, 3)."""
+    xl, vl = to_head(frame, x1, v1, x_rigid=x)
+    p = x.shape[1]
+    free_p = free.repeat(p // free.shape[0])
+    cx, cv = detailed_collisions(grid, xl, vl, m, free_p)
+    free3 = free_p[None, :, None]
+    rot = frame[:, :3]
+    dx = torch.einsum("bij,bpj->bpi", rot, torch.where(free3, cx, torch.zeros_like(cx)))
+    dv = torch.einsum("bij,bpj->bpi", rot, torch.where(free3, cv, torch.zeros_like(cv)))
+    return x1 + dx, v1 + dv
+
+
+def make_stage(grid: Optional[HairHairGrid], mass, free: Optional[torch.Tensor] = None,
+               backend: str = "auto") -> Optional[Callable]:
+    """Wrap :func:`hair_hair_stage` as an integrator stage ``(x, v, pose, dt, state) -> (x, v)``.
+
+    Args: grid (None → returns None), mass kg broadcastable to (..., S, N), free (N,) bool,
+    backend as in :func:`hair_hair_stage`.
+    """
+    if grid is None:
+        return None
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}; got {backend!r}")
+
+    def stage(x, v, pose, dt, state=None):
+        return hair_hair_stage(grid, x, v, mass, pose, dt, free, backend)
+
+    return stage
