@@ -1,10 +1,14 @@
-"""Groom file formats: round trips, ragged strands, and clear errors on broken files."""
+"""Groom file formats: round trips, ragged strands, import units/axes, USD curve types, TressFX
+writing, and clear errors on broken files."""
 import struct
+import tracemalloc
+import warnings
 
 import numpy as np
 import pytest
 import torch
 
+from ams_torch.geometry.units import ImplausibleSizeWarning
 from ams_torch.grooms.groom import Groom, strand_lengths
 from ams_torch.grooms.io import FORMATS, GroomFileError, read_groom, write_groom
 
@@ -128,8 +132,6 @@ def test_tfx_read(tmp_path):
     np.testing.assert_array_equal(h.rest_positions.numpy(), x)
     np.testing.assert_array_equal(h.metadata["tfx_w"], w)
     assert h.metadata["tfx_version"] == 4.0
-    with pytest.raises(ValueError, match="read only"):
-        write_groom(tmp_path / "b.tfx", h)
 
 
 def test_usc_single_point_strands_are_dropped(tmp_path):
@@ -217,7 +219,7 @@ def _corrupt_cases(tmp_path):
     b = bytearray(p.read_bytes())
     b[8:12] = struct.pack("<I", 25)
     p.write_bytes(bytes(b))
-    cases[p] = "header says 25"
+    cases[p] = "header says 4 strands and 25 points"
     # NaN coordinates
     p = tmp_path / "nan.bin"
     bad = uniform_groom(s=4, n=6, bound=False)
@@ -283,3 +285,308 @@ def test_grown_groom_round_trips_with_binding(tmp_path):
     assert torch.equal(h.rest_positions, g.rest_positions)
     assert torch.allclose(h.reattach(mesh.vertices * 2.0), g.reattach(mesh.vertices * 2.0))
     assert h.metadata["seed"] == 0 and h.metadata["params"]["spiral"] == 0.017
+
+
+# ------------------------------------------------------------------------------------------
+# import units, axes and transforms (SPEC §14)
+# ------------------------------------------------------------------------------------------
+def test_read_groom_units_up_axis_and_transform_in_that_order(tmp_path):
+    g = uniform_groom(s=6, n=5, bound=False)
+    write_groom(tmp_path / "g.data", g)
+    x = g.rest_positions.numpy().astype(np.float64)
+    cm = read_groom(tmp_path / "g.data", units="cm")
+    np.testing.assert_array_equal(cm.rest_positions.numpy(), (x * 0.01).astype(np.float32))
+    z = read_groom(tmp_path / "g.data", up_axis="z")  # (x, y, z) -> (x, z, -y)
+    np.testing.assert_array_equal(z.rest_positions.numpy(), np.stack([x[..., 0], x[..., 2], -x[..., 1]], -1)
+                                  .astype(np.float32))
+    c, s_ = np.cos(0.3), np.sin(0.3)
+    rot = np.array([[c, 0, s_], [0, 1, 0], [-s_, 0, c]])
+    t = np.array([0.01, -0.02, 0.03])
+    both = read_groom(tmp_path / "g.data", scale=0.5, up_axis="z", transform=(rot, t))
+    expect = np.stack([x[..., 0], x[..., 2], -x[..., 1]], -1) * 0.5 @ rot.T + t
+    np.testing.assert_allclose(both.rest_positions.numpy(), expect, atol=1e-7)
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = rot, t
+    four = read_groom(tmp_path / "g.data", scale=0.5, up_axis="z", transform=m)
+    assert torch.equal(four.rest_positions, both.rest_positions)
+    np.testing.assert_allclose(np.asarray(four.metadata["import_transform"])[:3, 3], t)
+    # lengths scale with the units, not with the rigid parts
+    np.testing.assert_allclose(both.lengths(), 0.5 * g.lengths(), rtol=1e-5)
+
+
+def test_import_keys_are_validated():
+    from ams_torch.geometry.units import import_transform
+
+    with pytest.raises(ValueError, match="units or scale, not both"):
+        import_transform(units="cm", scale=0.01)
+    with pytest.raises(ValueError, match=r"units must be one of \['cm', 'm', 'mm'\]; got 'inch'"):
+        import_transform(units="inch")
+    with pytest.raises(ValueError, match="scale must be a positive finite number; got -1"):
+        import_transform(scale=-1)
+    with pytest.raises(ValueError, match="up_axis must be 'y' or 'z'; got 'x'"):
+        import_transform(up_axis="x")
+    with pytest.raises(ValueError, match="reflection"):
+        import_transform(transform=np.diag([1.0, 1.0, -1.0, 1.0]))
+    with pytest.raises(ValueError, match="not orthonormal"):
+        import_transform(transform=np.diag([2.0, 2.0, 2.0, 1.0]))
+    with pytest.raises(ValueError, match=r"last row .* \[0, 0, 0, 1\]"):
+        bad = np.eye(4)
+        bad[3, 0] = 1.0
+        import_transform(transform=bad)
+    with pytest.raises(ValueError, match=r"4x4 matrix or a pair \(R \(3, 3\), t \(3,\)\); got shape \(3, 3\)"):
+        import_transform(transform=np.eye(3))
+    # the tolerance follows the dtype: a float32 rotation is accepted at float32 precision
+    c, s = np.float32(np.cos(0.7)), np.float32(np.sin(0.7))
+    r32 = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=np.float32)
+    import_transform(transform=(r32, np.zeros(3, np.float32)))
+    with pytest.raises(ValueError, match="not orthonormal"):
+        import_transform(transform=(r32.astype(np.float64), np.zeros(3)))
+    z = import_transform(up_axis="z")
+    assert np.linalg.det(z[:3, :3]) == pytest.approx(1.0) and np.array_equal(z[:3, :3] @ [0, 0, 1], [0, 1, 0])
+
+
+def test_implausible_sizes_warn_with_the_measured_size(tmp_path):
+    g = uniform_groom(s=4, n=8, bound=False)
+    cm = Groom(rest_positions=g.rest_positions * 100 * 40)  # strands of metres in centimetres
+    write_groom(tmp_path / "cm.data", cm)
+    longest = float(cm.lengths().max())
+    with pytest.warns(ImplausibleSizeWarning, match=rf"longest strand is {longest:.4g} m, more than 3 m"):
+        read_groom(tmp_path / "cm.data")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        h = read_groom(tmp_path / "cm.data", units="cm")
+    np.testing.assert_allclose(h.lengths().max(), longest * 0.01, rtol=1e-5)
+
+
+def test_bin_directions_rotate_with_the_up_axis(tmp_path):
+    g = uniform_groom(s=3, n=5, bound=False)
+    write_groom(tmp_path / "a.bin", g)
+    a = read_groom(tmp_path / "a.bin").metadata["bin_attributes"]
+    b = read_groom(tmp_path / "a.bin", units="mm", up_axis="z").metadata["bin_attributes"]
+    np.testing.assert_allclose(b[:, :3], np.stack([a[:, 0], a[:, 2], -a[:, 1]], 1), atol=1e-7)  # unit, unscaled
+    np.testing.assert_array_equal(b[:, 3], a[:, 3])
+
+
+# ------------------------------------------------------------------------------------------
+# .hair: thickness in metres, LuxCore UVs, hostile counts
+# ------------------------------------------------------------------------------------------
+def test_hair_writes_the_groom_width_in_metres_and_reads_it_back(tmp_path):
+    g = uniform_groom(s=5, n=6, bound=False)
+    write_groom(tmp_path / "d.hair", g)
+    d_thickness = struct.unpack_from("<f", (tmp_path / "d.hair").read_bytes(), 20)[0]
+    assert d_thickness == np.float32(7e-5)  # 70 µm, not Yuksel's default of 1.0
+    g.width = 5e-5
+    write_groom(tmp_path / "w.hair", g)
+    h = read_groom(tmp_path / "w.hair")
+    assert h.width == pytest.approx(5e-5, rel=1e-6)
+    assert read_groom(tmp_path / "w.hair", units="mm").width == pytest.approx(5e-8, rel=1e-6)
+    # an implausible default thickness (Yuksel's 1.0) is not taken as a width
+    raw = bytearray((tmp_path / "w.hair").read_bytes())
+    raw[20:24] = struct.pack("<f", 1.0)
+    (tmp_path / "one.hair").write_bytes(bytes(raw))
+    one = read_groom(tmp_path / "one.hair")
+    assert one.width == 7e-5 and one.metadata["hair_defaults"]["thickness"] == 1.0
+
+
+def _luxcore_hair(path, strands, uv):
+    """A .hair file with LuxCore's UV array (flag 32), written independently of the writer."""
+    counts = [len(s) for s in strands]
+    pts = np.concatenate(strands).astype("<f4")
+    flags = 1 | 2 | 32
+    header = struct.pack("<4sIIIIff3f88s", b"HAIR", len(strands), len(pts), flags, 0, 1e-4, 0.0, 1, 1, 1,
+                         b"luxcore".ljust(88, b"\0"))
+    segments = (np.array(counts, np.int64) - 1).astype("<u2").tobytes()
+    path.write_bytes(header + segments + pts.tobytes() + np.asarray(uv, "<f4").tobytes())
+
+
+def test_hair_luxcore_uv_flag_is_read_and_written_back(tmp_path):
+    rng = np.random.default_rng(3)
+    strands = [rng.normal(size=(n, 3)).astype(np.float32) * 0.01 for n in (3, 5, 4)]
+    uv = rng.random((12, 2)).astype(np.float32)
+    _luxcore_hair(tmp_path / "lux.hair", strands, uv)
+    h = read_groom(tmp_path / "lux.hair")
+    np.testing.assert_array_equal(h.metadata["hair_arrays"]["uv"], uv)
+    for a, b in zip(h.strands, strands):
+        np.testing.assert_array_equal(a, b)
+    assert h.width == pytest.approx(1e-4)
+    write_groom(tmp_path / "again.hair", h)
+    raw = (tmp_path / "again.hair").read_bytes()
+    assert struct.unpack_from("<I", raw, 12)[0] & 32
+    np.testing.assert_array_equal(np.frombuffer(raw[-uv.nbytes:], "<f4").reshape(-1, 2), uv)
+    np.testing.assert_array_equal(read_groom(tmp_path / "again.hair").metadata["hair_arrays"]["uv"], uv)
+
+
+def test_hair_header_with_2_31_strands_fails_without_allocating(tmp_path):
+    """The original reproduction: strand count 2³¹ made the reader allocate 16 GB (with and
+    without a segments array)."""
+    g = uniform_groom(s=4, n=6, bound=False)
+    write_groom(tmp_path / "big.hair", g)
+    raw = bytearray((tmp_path / "big.hair").read_bytes())
+    raw[4:8] = struct.pack("<I", 2 ** 31)
+    (tmp_path / "big.hair").write_bytes(bytes(raw))
+    tracemalloc.start()
+    try:
+        with pytest.raises(GroomFileError, match=rf"says 2147483648 strands.*{len(raw)} bytes") as err:
+            read_groom(tmp_path / "big.hair")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert str(err.value).startswith(str(tmp_path / "big.hair"))
+    assert peak < 64 * len(raw) + (1 << 20), peak
+    write_groom(tmp_path / "ragged.hair", ragged_groom())  # with a segments array
+    raw = bytearray((tmp_path / "ragged.hair").read_bytes())
+    raw[4:8] = struct.pack("<I", 2 ** 31)
+    (tmp_path / "ragged.hair").write_bytes(bytes(raw))
+    with pytest.raises(GroomFileError, match=rf"says 2147483648 strands and 111 points .* need 4294968756 bytes, "
+                                             rf"but the file has {len(raw)} bytes"):
+        read_groom(tmp_path / "ragged.hair")
+
+
+# ------------------------------------------------------------------------------------------
+# .tfx writing
+# ------------------------------------------------------------------------------------------
+def test_tfx_write_round_trip_and_pinned_flags(tmp_path):
+    g = uniform_groom(s=9, n=16, bound=False)
+    g.metadata["tfx_strand_uv"] = np.random.default_rng(0).random((9, 2)).astype(np.float32)
+    assert write_groom(tmp_path / "a.tfx", g, num_pinned=3) == 16
+    h = read_groom(tmp_path / "a.tfx")
+    assert torch.equal(h.rest_positions, g.rest_positions)  # already 16 vertices: written exactly
+    w = h.metadata["tfx_w"]
+    assert np.all(w[:, :3] == 0) and np.all(w[:, 3:] == 1)
+    np.testing.assert_array_equal(h.metadata["tfx_strand_uv"], g.metadata["tfx_strand_uv"])
+    fields = struct.unpack_from("<f7I", (tmp_path / "a.tfx").read_bytes())
+    assert fields == (4.0, 9, 16, 160, 160 + 9 * 16 * 16, 0, 0, 0)
+
+
+def test_tfx_write_resamples_to_a_power_of_two(tmp_path):
+    g = ragged_groom()  # 2 .. 64 points
+    assert write_groom(tmp_path / "r.tfx", g) == 64  # next power of two of the longest, capped at 64
+    h = read_groom(tmp_path / "r.tfx")
+    assert h.rest_positions.shape == (6, 64, 3)
+    np.testing.assert_allclose(h.lengths(), strand_lengths(g.strands), rtol=1e-5)
+    np.testing.assert_array_equal(h.rest_positions[:, 0].numpy(), np.stack([s[0] for s in g.strands]))
+    assert np.all(h.metadata["tfx_w"][:, :2] == 0) and np.all(h.metadata["tfx_w"][:, 2:] == 1)
+    u = uniform_groom(s=3, n=12, bound=False)
+    assert write_groom(tmp_path / "u.tfx", u) == 16
+    assert write_groom(tmp_path / "e.tfx", u, vertices_per_strand=8) == 8
+    for bad in (48, 128, 1):
+        with pytest.raises(ValueError, match=rf"power-of-two number of vertices per strand, at most 64 .*got {bad}"):
+            write_groom(tmp_path / "bad.tfx", u, vertices_per_strand=bad)
+    with pytest.raises(ValueError, match=r"num_pinned must be an integer in \[0, 16\]"):
+        write_groom(tmp_path / "bad.tfx", u, num_pinned=17)
+    with pytest.raises(TypeError, match=r"unknown option\(s\) \['pinned'\]"):
+        write_groom(tmp_path / "bad.tfx", u, pinned=2)
+
+
+# ------------------------------------------------------------------------------------------
+# USD: curve types and bases, wrap, widths, time samples, Z-up, corrupt text
+# ------------------------------------------------------------------------------------------
+def _usda(path, body, up="Y", mpu=None):
+    meta = f'upAxis = "{up}"' + ("" if mpu is None else f"\n    metersPerUnit = {mpu}")
+    path.write_text(f"#usda 1.0\n(\n    {meta}\n)\n\n{body}\n")
+    return path
+
+
+def _curves(points, counts, extra=""):
+    pts = ", ".join(f"({float(a)!r}, {float(b)!r}, {float(c)!r})" for a, b, c in np.asarray(points, float))
+    return (f'def BasisCurves "c"\n{{\n    int[] curveVertexCounts = {list(counts)}\n'
+            f"    point3f[] points = [{pts}]\n{extra}\n}}")
+
+
+def test_usd_cubic_bezier_is_evaluated_not_returned_as_control_points(tmp_path):
+    pytest.importorskip("pxr")
+    from ams_torch.grooms.io.usd import SPAN_SAMPLES
+
+    # Bézier control points of (t, t³, 0), t in [0, 1]
+    ctrl = [(0, 0, 0), (1 / 3, 0, 0), (2 / 3, 0, 0), (1, 1, 0)]
+    p = _usda(tmp_path / "bez.usda", _curves(ctrl, [4], '    uniform token type = "cubic"\n'
+                                              '    uniform token basis = "bezier"'))
+    g = read_groom(p)
+    t = np.arange(SPAN_SAMPLES + 1) / SPAN_SAMPLES
+    np.testing.assert_allclose(g.rest_positions[0].numpy(), np.stack([t, t ** 3, 0 * t], 1), atol=1e-7)
+    assert g.metadata["usd_curves"][0]["basis"] == "bezier"
+
+
+def test_usd_bspline_matches_scipy_and_pinned_reaches_the_end_points(tmp_path):
+    pytest.importorskip("pxr")
+    from scipy.interpolate import BSpline
+
+    from ams_torch.grooms.io.usd import SPAN_SAMPLES
+
+    rng = np.random.default_rng(5)
+    ctrl = rng.normal(size=(7, 3)) * 0.01
+    body = _curves(ctrl, [7], '    uniform token type = "cubic"\n    uniform token basis = "bspline"')
+    g = read_groom(_usda(tmp_path / "bs.usda", body))
+    ref = BSpline(np.arange(11.0), ctrl, 3)(np.linspace(3.0, 7.0, 4 * SPAN_SAMPLES + 1))
+    np.testing.assert_allclose(g.rest_positions[0].numpy(), ref, atol=1e-8)
+    pinned = body.replace('basis = "bspline"', 'basis = "bspline"\n    uniform token wrap = "pinned"')
+    h = read_groom(_usda(tmp_path / "pin.usda", pinned))
+    np.testing.assert_allclose(h.rest_positions[0, 0].numpy(), ctrl[0], atol=1e-8)
+    np.testing.assert_allclose(h.rest_positions[0, -1].numpy(), ctrl[-1], atol=1e-8)
+    assert h.num_particles == 6 * SPAN_SAMPLES + 1
+    cr = pinned.replace('"bspline"', '"catmullRom"')
+    k = read_groom(_usda(tmp_path / "cr.usda", cr))
+    np.testing.assert_allclose(k.rest_positions[0, ::SPAN_SAMPLES].numpy(), ctrl, atol=1e-8)  # interpolating
+
+
+def test_usd_refuses_periodic_curves_and_unknown_bases(tmp_path):
+    pytest.importorskip("pxr")
+    ctrl = np.eye(3)[[0, 1, 2, 0, 1]] * 0.01
+    lin = _curves(ctrl, [5], '    uniform token type = "linear"\n    uniform token wrap = "periodic"')
+    with pytest.raises(GroomFileError, match="periodic \\(closed\\) curves are not read"):
+        read_groom(_usda(tmp_path / "loop.usda", lin))
+    herm = _curves(ctrl[:4], [4], '    uniform token type = "cubic"\n    uniform token basis = "hermite"')
+    with pytest.raises(GroomFileError, match="basis 'hermite' are not supported"):
+        read_groom(_usda(tmp_path / "herm.usda", herm))
+    bez = _curves(ctrl, [5], '    uniform token type = "cubic"\n    uniform token basis = "bezier"')
+    with pytest.raises(GroomFileError, match="curve 0: a nonperiodic bezier curve needs 4 \\+ 3k control points; got 5"):
+        read_groom(_usda(tmp_path / "bez5.usda", bez))
+
+
+def test_usd_widths_time_samples_z_up_and_units(tmp_path):
+    pytest.importorskip("pxr")
+    pts = np.array([[0, 0, 0], [0, 0, 10], [0, 1, 20], [5, 0, 0], [5, 0, 8]], float)  # cm, Z up
+    sampled = ", ".join(f"({a}, {b}, {c})" for a, b, c in pts)
+    body = ('def BasisCurves "c"\n{\n    uniform token type = "linear"\n    int[] curveVertexCounts = [3, 2]\n'
+            f"    point3f[] points.timeSamples = {{\n        10: [{sampled}],\n        20: [{sampled.replace('5,', '6,')}],\n    }}\n"
+            '    float[] widths = [0.004, 0.005, 0.006, 0.007, 0.008] (interpolation = "vertex")\n}')
+    p = _usda(tmp_path / "zup.usda", body, up="Z", mpu=0.01)
+    g = read_groom(p)
+    expect = np.stack([pts[:, 0], pts[:, 2], -pts[:, 1]], 1) * 0.01  # first sample, +y up, metres
+    got = np.concatenate(g.polylines())
+    np.testing.assert_allclose(got, expect, atol=1e-7)
+    assert g.metadata["usd_time"] == 10.0 and g.metadata["usd_up_axis"] == "Z"
+    np.testing.assert_allclose(g.metadata["usd_widths"], [4e-5, 5e-5, 6e-5, 7e-5, 8e-5], rtol=1e-6)
+    assert g.metadata["usd_widths_interpolation"] == "vertex" and g.width == pytest.approx(6e-5)
+    with pytest.raises(ValueError, match="declares metersPerUnit = 0.01.*do not pass units"):
+        read_groom(p, units="cm")
+    with pytest.raises(ValueError, match="declares upAxis = Z.*do not pass up_axis='z'"):
+        read_groom(p, up_axis="z")
+    # written back: per-point widths survive, the stage says metres and Y up
+    write_groom(tmp_path / "back.usda", g)
+    h = read_groom(tmp_path / "back.usda")
+    np.testing.assert_array_equal(np.concatenate(h.polylines()), got)
+    np.testing.assert_array_equal(h.metadata["usd_widths"], g.metadata["usd_widths"])
+
+
+def test_usd_width_round_trip(tmp_path):
+    pytest.importorskip("pxr")
+    g = uniform_groom(s=3, n=4, bound=False)
+    g.width = 9e-5
+    write_groom(tmp_path / "w.usdc", g)
+    assert read_groom(tmp_path / "w.usdc").width == pytest.approx(9e-5)
+
+
+def test_usda_with_flipped_bytes_is_a_groom_file_error(tmp_path):
+    """The original reproduction: flipped bytes in a .usda gave a raw UnicodeDecodeError."""
+    pytest.importorskip("pxr")
+    g = uniform_groom(s=3, n=4, bound=False)
+    write_groom(tmp_path / "ok.usda", g)
+    raw = bytearray((tmp_path / "ok.usda").read_bytes())
+    at = raw.index(b"points") + 2
+    raw[at] ^= 0xFF
+    raw[at + 1] ^= 0xFF
+    (tmp_path / "flip.usda").write_bytes(bytes(raw))
+    with pytest.raises(GroomFileError) as err:
+        read_groom(tmp_path / "flip.usda")
+    assert str(err.value).startswith(str(tmp_path / "flip.usda")) and "corrupt" in str(err.value)

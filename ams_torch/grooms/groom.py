@@ -14,15 +14,22 @@ its corners ``root_face_vertices[s]`` (vertex indices, in the order of the face)
 """
 from __future__ import annotations
 
+import logging
+import math
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Sequence, Union
 
 import numpy as np
 import torch
 
-__all__ = ["Groom", "resample_strands", "strand_lengths", "triangle_frames", "fps_order"]
+__all__ = ["Groom", "resample_strands", "strand_lengths", "triangle_frames", "fps_order", "DEFAULT_WIDTH"]
+
+log = logging.getLogger(__name__)
 
 ArrayLike = Union[np.ndarray, torch.Tensor]
+
+#: default strand diameter, metres (70 µm)
+DEFAULT_WIDTH = 7e-5
 
 
 # --------------------------------------------------------------------------------------------
@@ -44,6 +51,16 @@ def _pad_polylines(strands: Sequence[np.ndarray]) -> tuple:
     return out, counts
 
 
+def _length_buckets(strands: Sequence[np.ndarray]):
+    """Indices of ragged strands grouped by point count in [2^k, 2^(k+1)): padding each group
+    costs at most twice its points (one very long strand does not pad every other one)."""
+    counts = np.fromiter((len(s) for s in strands), dtype=np.int64, count=len(strands))
+    if len(counts) and counts.min() < 1:
+        raise ValueError("resample_strands: every strand needs at least one point")
+    key = np.floor(np.log2(np.maximum(counts, 1))).astype(np.int64)
+    return [np.flatnonzero(key == k) for k in np.unique(key)]
+
+
 def strand_lengths(strands) -> np.ndarray:
     """Arc length of every strand, metres.
 
@@ -53,11 +70,23 @@ def strand_lengths(strands) -> np.ndarray:
         strands = strands.detach().cpu().numpy()
     if isinstance(strands, np.ndarray) and strands.ndim == 3:
         p = strands.astype(np.float64, copy=False)
-    else:
-        p, _ = _pad_polylines(list(strands))
-    if p.shape[1] < 2:
-        return np.zeros(p.shape[0])
-    return np.linalg.norm(np.diff(p, axis=1), axis=-1).sum(1)
+        if p.shape[1] < 2:
+            return np.zeros(p.shape[0])
+        return np.linalg.norm(np.diff(p, axis=1), axis=-1).sum(1)
+    strands = [np.asarray(x, dtype=np.float64).reshape(-1, 3) for x in strands]
+    if not strands:
+        return np.zeros(0)
+    counts = np.array([len(x) for x in strands], dtype=np.int64)
+    pts = np.concatenate(strands, 0)
+    seg = np.linalg.norm(np.diff(pts, axis=0), axis=-1) if len(pts) > 1 else np.zeros(0)
+    seg = np.concatenate([seg, [0.0]])
+    ends = np.cumsum(counts)
+    seg[ends[ends > 0] - 1] = 0.0  # the step from a strand's last point to the next strand's root
+    starts = ends - counts
+    out = np.zeros(len(strands))
+    nonempty = counts > 0
+    out[nonempty] = np.add.reduceat(seg, starts[nonempty])
+    return out
 
 
 def _resample_padded(p: np.ndarray, n: int, upto: Optional[np.ndarray], keep_length: bool) -> np.ndarray:
@@ -125,7 +154,16 @@ def resample_strands(strands, n: int, keep_length: bool = True, lengths=None):
     elif isinstance(strands, np.ndarray) and strands.ndim == 3:
         p = strands.astype(np.float64, copy=False)
     else:
-        p, _ = _pad_polylines(list(strands))
+        strands = list(strands)
+        for i, x in enumerate(strands):
+            if np.ndim(x) != 2 or np.shape(x)[-1] != 3:
+                raise ValueError(f"resample_strands: strand {i} must be (n, 3); got shape {np.shape(x)}")
+        upto = None if lengths is None else np.broadcast_to(np.asarray(lengths, dtype=np.float64), (len(strands),))
+        out = np.empty((len(strands), n, 3), dtype=np.float64)
+        for idx in _length_buckets(strands):
+            p, _ = _pad_polylines([strands[i] for i in idx])
+            out[idx] = _resample_padded(p, n, None if upto is None else upto[idx], keep_length)
+        return out
     if p.ndim != 3 or p.shape[-1] != 3:
         raise ValueError(f"resample_strands: strands must be (S, M, 3) or a list of (n_i, 3); got {p.shape}")
     if lengths is not None:
@@ -185,6 +223,10 @@ class Groom:
             groom whose strands have different point counts (read from a file); converted to
             float32 on construction.
         metadata: free-form dict (growth parameters, seed, source file, format extras).
+        width: strand diameter, metres (default 7e-5 = 70 µm, a typical human hair; the range
+            is about 17–180 µm). Written by the file formats that store a thickness (``.hair``
+            thickness, USD ``widths``); set from files that carry one (USD widths, a plausible
+            ``.hair`` default thickness). Not used by the dynamics.
     """
 
     rest_positions: Optional[torch.Tensor] = None
@@ -194,8 +236,15 @@ class Groom:
     root_rest_frames: Optional[torch.Tensor] = None
     strands: Optional[List[np.ndarray]] = None
     metadata: Dict[str, Any] = field(default_factory=dict)
+    width: float = DEFAULT_WIDTH
 
     def __post_init__(self):
+        try:
+            self.width = float(self.width)
+        except (TypeError, ValueError):
+            raise ValueError(f"Groom.width must be a positive number of metres; got {self.width!r}") from None
+        if not (math.isfinite(self.width) and self.width > 0):
+            raise ValueError(f"Groom.width must be a positive finite number of metres; got {self.width!r}")
         self.rest_positions = _as_tensor(self.rest_positions, torch.float32)
         self.root_triangles = _as_tensor(self.root_triangles, torch.int64)
         self.root_barycentrics = _as_tensor(self.root_barycentrics, torch.float32)
@@ -260,7 +309,7 @@ class Groom:
         meta = dict(self.metadata)
         meta["resampled_to"] = int(n)
         return Groom(torch.as_tensor(np.asarray(pos), dtype=torch.float32), self.root_triangles,
-                     self.root_barycentrics, self.root_face_vertices, self.root_rest_frames, None, meta)
+                     self.root_barycentrics, self.root_face_vertices, self.root_rest_frames, None, meta, self.width)
 
     def subset(self, index) -> "Groom":
         """The strands selected by ``index`` (slice, int array or bool mask over S), as a Groom."""
@@ -272,7 +321,8 @@ class Groom:
             return None if t is None else t[idx]
         strands = None if self.strands is None else [self.strands[int(i)] for i in idx]
         return Groom(pick(self.rest_positions), pick(self.root_triangles), pick(self.root_barycentrics),
-                     pick(self.root_face_vertices), pick(self.root_rest_frames), strands, dict(self.metadata))
+                     pick(self.root_face_vertices), pick(self.root_rest_frames), strands, dict(self.metadata),
+                     self.width)
 
     # -- binding to the mesh ---------------------------------------------------------------
     def _need_binding(self):
@@ -303,14 +353,6 @@ class Groom:
         b = self.root_barycentrics.to(device=corners.device, dtype=corners.dtype)
         return (b[..., None] * corners).sum(-2)
 
-    def root_frames(self, mesh_vertices) -> torch.Tensor:
-        """Frame of each root's triangle on a (moved or deformed) mesh.
-
-        mesh_vertices: (..., V, 3) metres → (..., S, 3, 3) rotations (see :func:`triangle_frames`).
-        """
-        self._need_binding()
-        return triangle_frames(self._corners(mesh_vertices))
-
     def reattach(self, mesh_vertices) -> torch.Tensor:
         """Rest strands carried along with their root triangles on a moved/deformed mesh.
 
@@ -335,13 +377,96 @@ class Groom:
         local = torch.einsum("sji,snj->sni", self.root_rest_frames.to(dev, dt), x - x[:, :1])
         return new_roots[..., None, :] + torch.einsum("...sij,snj->...sni", new_frames, local)
 
+    def bind_to(self, mesh, max_distance: float = 5e-3, *, snap: bool = False) -> "Groom":
+        """A copy whose roots are bound to the nearest triangles of ``mesh`` (SPEC §14).
+
+        Every root (particle 0) is matched to the closest point of the mesh (point-cloud-utils'
+        AABB closest-point query), which gives its triangle and barycentric coordinates; the
+        copy then carries ``root_triangles``, ``root_barycentrics``, ``root_face_vertices`` and
+        ``root_rest_frames`` like a grown groom, so :meth:`root_positions` and :meth:`reattach`
+        make the roots follow the mesh.
+
+        Args:
+            mesh: ``trimesh.Trimesh`` (or anything with ``vertices`` (V, 3) and ``faces``
+                (F, 3)) in metres, in the groom's frame (import both with the same units,
+                up axis and transform). Open meshes are fine.
+            max_distance: metres; a root farther than this from the surface is an error
+                (default 5 mm: real grooms sit within a millimetre of their scalp).
+            snap: move each strand rigidly by (closest point − root) so that its root lies on
+                the surface; by default the strands are kept as they are, and
+                :meth:`root_positions` on the same mesh returns the closest points (they differ
+                from the stored roots by the reported distances).
+
+        Returns:
+            The bound copy. ``metadata["binding"]`` holds ``median_distance`` and
+            ``max_distance`` (metres, root–surface, before snapping), ``mean_distance``,
+            ``max_allowed``, ``mesh`` (its ``metadata["source"]`` or name), ``snapped``; the same
+            numbers are logged at INFO level.
+
+        Raises:
+            ValueError: roots beyond ``max_distance`` (the message names the count, the first
+            strand indices and the farthest distance), a bad mesh or ``max_distance``.
+        """
+        try:
+            import point_cloud_utils as pcu
+        except ImportError as err:  # pragma: no cover - dependency missing
+            raise ImportError("Groom.bind_to needs point-cloud-utils: pip install point-cloud-utils") from err
+        from ams_torch.geometry.mesh import check_mesh_arrays
+
+        if not (hasattr(mesh, "vertices") and hasattr(mesh, "faces")):
+            raise TypeError(f"bind_to needs a mesh with vertices and faces (e.g. trimesh.Trimesh); got "
+                            f"{type(mesh).__name__}")
+        max_distance = float(max_distance)
+        if not (math.isfinite(max_distance) and max_distance >= 0):
+            raise ValueError(f"bind_to: max_distance must be a non-negative number of metres; got {max_distance!r}")
+        name = str(getattr(mesh, "metadata", {}).get("source") or getattr(mesh, "metadata", {}).get("name") or "mesh")
+        verts = np.ascontiguousarray(np.asarray(mesh.vertices, dtype=np.float64))
+        faces = np.ascontiguousarray(np.asarray(mesh.faces, dtype=np.int64))
+        check_mesh_arrays(name, verts, faces)
+        roots = np.ascontiguousarray(np.stack([np.asarray(p[0], dtype=np.float64) for p in self.polylines()])
+                                     if self.num_strands else np.zeros((0, 3)))
+        if len(roots):
+            dist, fid, bary = pcu.closest_points_on_mesh(roots, verts, faces)
+            dist, fid, bary = np.atleast_1d(dist), np.atleast_1d(fid), np.atleast_2d(bary)
+        else:
+            dist, fid, bary = np.zeros(0), np.zeros(0, np.int64), np.zeros((0, 3))
+        far = np.flatnonzero(dist > max_distance)
+        if len(far):
+            shown = ", ".join(str(int(i)) for i in far[:10]) + (", ..." if len(far) > 10 else "")
+            raise ValueError(f"bind_to: {len(far)} of {len(roots)} roots are farther than max_distance = "
+                             f"{max_distance * 1e3:.4g} mm from {name} (farthest: strand {int(far[np.argmax(dist[far])])} "
+                             f"at {dist.max() * 1e3:.4g} mm); strands {shown}. Check the units, up_axis and transform "
+                             "of the groom and the mesh, or raise max_distance.")
+        fid = fid.astype(np.int64)
+        fv = faces[fid]
+        corners = torch.as_tensor(verts[fv])  # (S, 3, 3)
+        surface = (torch.as_tensor(bary, dtype=torch.float64)[..., None] * corners).sum(-2).numpy()
+        stats = dict(median_distance=float(np.median(dist)) if len(dist) else 0.0,
+                     max_distance=float(dist.max()) if len(dist) else 0.0,
+                     mean_distance=float(dist.mean()) if len(dist) else 0.0,
+                     max_allowed=max_distance, mesh=name, snapped=bool(snap))
+        log.info("bound %d roots to %s: root-surface distance median %.3g mm, max %.3g mm%s", len(roots), name,
+                 stats["median_distance"] * 1e3, stats["max_distance"] * 1e3, " (snapped)" if snap else "")
+        meta = dict(self.metadata)
+        meta["binding"] = stats
+        rest, strands = self.rest_positions, self.strands
+        if snap:
+            shift = surface - roots  # (S, 3)
+            if rest is not None:
+                rest = (rest.double() + torch.as_tensor(shift)[:, None, :]).float()
+            if strands is not None:
+                strands = [np.asarray(p, np.float64) + d for p, d in zip(strands, shift)]
+        return Groom(rest, torch.as_tensor(fid), torch.as_tensor(bary, dtype=torch.float32), torch.as_tensor(fv),
+                     triangle_frames(corners).float(), strands, meta, self.width)
+
     # -- misc --------------------------------------------------------------------------------
     def to(self, device) -> "Groom":
         """A copy with the tensors on ``device`` (``strands`` stay numpy arrays)."""
         def mv(t):
             return None if t is None else t.to(device)
         return Groom(mv(self.rest_positions), mv(self.root_triangles), mv(self.root_barycentrics),
-                     mv(self.root_face_vertices), mv(self.root_rest_frames), self.strands, dict(self.metadata))
+                     mv(self.root_face_vertices), mv(self.root_rest_frames), self.strands, dict(self.metadata),
+                     self.width)
 
     def save(self, path) -> None:
         """Write the groom to ``path``; the format follows the extension (see :mod:`ams_torch.grooms.io`)."""

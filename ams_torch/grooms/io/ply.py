@@ -9,7 +9,8 @@ elements. Strands are rebuilt from the edges, taken as directed vertex1 → vert
 starts at a vertex with no incoming edge and follows the edges to its end; a vertex with two
 outgoing or two incoming edges, or a closed loop, is an error (not a set of polylines).
 Vertices without edges are skipped. Without an ``edge`` element, a ``strand`` element with
-``nsegs`` gives the strands as consecutive runs of vertices.
+``nsegs`` gives the strands as consecutive runs of vertices. List properties (e.g. faces) are
+skipped. Every element count is checked against what the file holds before allocating.
 """
 from __future__ import annotations
 
@@ -69,45 +70,45 @@ def _parse_header(path, data: bytes):
 
 
 def _read_body(path, data: bytes, fmt: str, elements, start: int) -> Dict[str, Dict[str, np.ndarray]]:
+    """Scalar properties of every element as arrays. List properties (faces ...) are skipped:
+    no groom needs them, and skipping them keeps memory bounded by the file size."""
     out: Dict[str, Dict[str, np.ndarray]] = {}
     if fmt == "ascii":
-        tokens = data[start:].split()
+        try:
+            flat = np.fromstring(data[start:], dtype=np.float64, sep=" ")
+        except ValueError:
+            raise fail(path, "corrupt PLY file: the ASCII body holds a value that is not a number") from None
         pos = 0
         for name, count, props in elements:
-            cols: Dict[str, list] = {p[0]: [] for p in props}
+            width = len(props)
+            left = len(flat) - pos
             if all(p[2] is None for p in props):
-                width = len(props)
                 need = width * count
-                if pos + need > len(tokens):
-                    raise fail(path, f"truncated PLY file: element '{name}' needs {need} values, only "
-                                     f"{len(tokens) - pos} are left")
-                try:
-                    block = np.array(tokens[pos:pos + need], dtype=np.float64).reshape(count, width)
-                except ValueError as err:
-                    raise fail(path, f"corrupt PLY file: non-numeric value in element '{name}' ({err})") from None
+                if need > left:
+                    raise fail(path, f"truncated PLY file: element '{name}' needs {need} values, only {left} are left")
+                block = flat[pos:pos + need].reshape(count, width)
                 pos += need
-                out[name] = {p[0]: block[:, j].astype(p[1]) for j, p in enumerate(props)}
+                with np.errstate(invalid="ignore", over="ignore"):
+                    out[name] = {p[0]: block[:, j].astype(p[1]) for j, p in enumerate(props)}
                 continue
+            if count * width > left:  # every property takes at least one value per row
+                raise fail(path, f"truncated PLY file: element '{name}' ({count} rows) needs at least "
+                                 f"{count * width} values, only {left} are left")
+            cols = {p[0]: np.empty(count, dtype=np.float64) for p in props if p[2] is None}
             for row in range(count):
                 for pname, dtype, itype in props:
-                    if pos >= len(tokens):
+                    if pos >= len(flat):
                         raise fail(path, f"truncated PLY file: element '{name}' ends at row {row} of {count}")
-                    try:
-                        if itype is None:
-                            cols[pname].append(float(tokens[pos]))
-                            pos += 1
-                        else:
-                            k = int(tokens[pos])
-                            if pos + 1 + k > len(tokens):
-                                raise fail(path, f"truncated PLY file: list in element '{name}', row {row}")
-                            cols[pname].append([float(t) for t in tokens[pos + 1:pos + 1 + k]])
-                            pos += 1 + k
-                    except ValueError as err:
-                        if str(err).startswith(str(path)):
-                            raise
-                        raise fail(path, f"corrupt PLY file: bad value in element '{name}', row {row}") from None
-            out[name] = {k: (np.asarray(v, dtype=next(p[1] for p in props if p[0] == k))
-                             if next(p[2] for p in props if p[0] == k) is None else v) for k, v in cols.items()}
+                    if itype is None:
+                        cols[pname][row] = flat[pos]
+                        pos += 1
+                    else:
+                        k = flat[pos]
+                        if not (np.isfinite(k) and k >= 0 and k == int(k)) or pos + 1 + int(k) > len(flat):
+                            raise fail(path, f"corrupt or truncated PLY file: list in element '{name}', row {row}")
+                        pos += 1 + int(k)
+            with np.errstate(invalid="ignore", over="ignore"):
+                out[name] = {k: v.astype(next(p[1] for p in props if p[0] == k)) for k, v in cols.items()}
         return out
     endian = "<" if fmt == "binary_little_endian" else ">"
     pos = start
@@ -122,25 +123,25 @@ def _read_body(path, data: bytes, fmt: str, elements, start: int) -> Dict[str, D
             pos += need
             out[name] = {p[0]: arr[p[0]].astype(p[1]) for p in props}
             continue
-        cols = {p[0]: [] for p in props}
+        least = sum(np.dtype(p[1]).itemsize for p in props)  # a list row holds at least its count
+        if count * least > len(data) - pos:
+            raise fail(path, f"truncated PLY file: element '{name}' ({count} rows of at least {least} bytes) at "
+                             f"offset {pos}, only {len(data) - pos} bytes are left")
+        cols = {p[0]: np.empty(count, dtype=p[1]) for p in props if p[2] is None}
         for row in range(count):
             for pname, dtype, itype in props:
+                size = np.dtype(dtype).itemsize
+                if pos + size > len(data):
+                    raise fail(path, f"truncated PLY file: element '{name}' ends at row {row} of {count}")
+                value = np.frombuffer(data, endian + dtype, 1, pos)[0]
+                pos += size
                 if itype is None:
-                    size = np.dtype(dtype).itemsize
-                    if pos + size > len(data):
-                        raise fail(path, f"truncated PLY file: element '{name}' ends at row {row} of {count}")
-                    cols[pname].append(np.frombuffer(data, endian + dtype, 1, pos)[0])
-                    pos += size
+                    cols[pname][row] = value
                 else:
-                    csize = np.dtype(dtype).itemsize
-                    if pos + csize > len(data):
-                        raise fail(path, f"truncated PLY file: element '{name}' ends at row {row} of {count}")
-                    k = int(np.frombuffer(data, endian + dtype, 1, pos)[0])
-                    pos += csize
+                    k = int(value)
                     isize = np.dtype(itype).itemsize
                     if k < 0 or pos + k * isize > len(data):
-                        raise fail(path, f"truncated PLY file: list in element '{name}', row {row}")
-                    cols[pname].append(np.frombuffer(data, endian + itype, k, pos).tolist())
+                        raise fail(path, f"corrupt or truncated PLY file: list in element '{name}', row {row}")
                     pos += k * isize
         out[name] = cols
     return out
@@ -200,6 +201,8 @@ def read_ply(path):
     strand = body.get("strand")
     if strand is not None and "nsegs" in strand:
         counts = np.asarray(strand["nsegs"], dtype=np.int64) + 1
+        if len(counts) and counts.min() < 1:
+            raise fail(path, f"corrupt PLY file: negative nsegs {int(counts.min()) - 1} in the 'strand' element")
         if int(counts.sum()) != len(pts):
             raise fail(path, f"corrupt PLY file: strand nsegs add up to {int(counts.sum())} points, the file has "
                              f"{len(pts)} vertices")

@@ -7,20 +7,28 @@ hairstyles are in metres, y up).
 ``.bin`` (CT2Hair, Shen et al. 2023): the same layout with 7 float32 per point: x, y, z, then
 three floats (a direction: normal or tangent, depending on the producer) and one label.
 Reading keeps the four extra values per point in ``metadata["bin_attributes"]`` ((P, 4)
-float32, concatenated over strands). Writing uses those when their row count matches the
+float32, concatenated over the kept strands; the direction is rotated by ``up_axis`` and
+``transform`` on import). Strands with fewer than two points are dropped on reading
+(``metadata["dropped_strands"]``). Every count is checked against the bytes left before
+anything is allocated. Writing uses those when their row count matches the
 groom's points, otherwise writes the unit tangent (central differences) and label 0.
 """
 from __future__ import annotations
 
+import struct
 from typing import Dict, List, Tuple
 
 import numpy as np
 
-from ams_torch.grooms.io._common import ByteReader, concat_strands, fail, read_bytes, strand_tangents
+from ams_torch.grooms.io._common import ByteReader, concat_strands, fail, read_bytes, split_points, strand_tangents
 
 
 def _read(path, floats_per_point: int, what: str) -> Tuple[List[np.ndarray], Dict]:
-    r = ByteReader(path, read_bytes(path), what)
+    """Two passes: the strand counts and offsets first (one int64 each, bounded by the file
+    size), then one gather of all points; strands with fewer than two points are dropped here
+    (``metadata["dropped_strands"]``) so that they never cost a Python object."""
+    data = read_bytes(path)
+    r = ByteReader(path, data, what)
     if r.left < 4:
         raise fail(path, f"truncated {what} file: {r.left} bytes, the int32 strand count needs 4")
     s = int(r.scalar("<i4", "the strand count"))
@@ -28,25 +36,44 @@ def _read(path, floats_per_point: int, what: str) -> Tuple[List[np.ndarray], Dic
         raise fail(path, f"corrupt {what} file: negative strand count {s}")
     if 4 * s > r.left:
         raise fail(path, f"corrupt or truncated {what} file: header says {s} strands, but {r.left} bytes cannot "
-                         f"hold even their point counts")
-    strands, extras = [], []
+                         f"hold even their point counts (file size {len(data)})")
     rec = floats_per_point * 4
+    counts = np.empty(s, dtype=np.int64)
+    starts = np.empty(s, dtype=np.int64)  # offset of each strand's first point, in float32 units
+    pos = 4
+    size = len(data)
+    unpack = struct.Struct("<i").unpack_from
     for i in range(s):
-        n = int(r.scalar("<i4", f"the point count of strand {i}"))
+        if pos + 4 > size:
+            raise fail(path, f"truncated {what} file: the point count of strand {i} at offset {pos} is missing "
+                             f"(file size {size})")
+        n = unpack(data, pos)[0]
         if n < 0:
-            raise fail(path, f"corrupt {what} file: negative point count {n} for strand {i} (offset {r.pos - 4})")
-        if n * rec > r.left:
+            raise fail(path, f"corrupt {what} file: negative point count {n} for strand {i} (offset {pos})")
+        pos += 4
+        if n * rec > size - pos:
             raise fail(path, f"truncated {what} file: strand {i} has {n} points ({n * rec} bytes) at offset "
-                             f"{r.pos}, but only {r.left} bytes are left")
-        a = r.array("<f4", n * floats_per_point, f"the points of strand {i}").reshape(n, floats_per_point)
-        strands.append(a[:, :3].astype(np.float32))
-        if floats_per_point > 3:
-            extras.append(a[:, 3:])
-    r.expect_end(f"the last of {s} strands")
+                             f"{pos}, but only {size - pos} bytes are left")
+        counts[i], starts[i] = n, pos // 4
+        pos += n * rec
+    if pos != size:
+        raise fail(path, f"corrupt {what} file: {size - pos} unexpected trailing bytes after the last of {s} strands "
+                         f"(offset {pos}); the counts in the file do not match its size")
+    keep = counts >= 2
     meta: Dict = {}
+    if not keep.all():
+        meta["dropped_strands"] = int((~keep).sum())
+    counts, starts = counts[keep], starts[keep]
+    flat = np.frombuffer(data, dtype="<f4", count=size // 4)
+    total = int(counts.sum())
+    first = np.repeat(starts - np.concatenate([[0], np.cumsum(counts)[:-1]]) * floats_per_point, counts) \
+        if total else np.zeros(0, np.int64)
+    rows = first + np.arange(total, dtype=np.int64) * floats_per_point  # float index of each point
+    block = flat[rows[:, None] + np.arange(floats_per_point)] if total else np.zeros((0, floats_per_point), "<f4")
+    pts = np.ascontiguousarray(block[:, :3], dtype=np.float32)
+    strands = split_points(pts, counts)
     if floats_per_point > 3:
-        meta["bin_attributes"] = (np.concatenate(extras, 0).astype(np.float32) if extras
-                                  else np.zeros((0, floats_per_point - 3), np.float32))
+        meta["bin_attributes"] = np.ascontiguousarray(block[:, 3:], dtype=np.float32)
     return strands, meta
 
 
