@@ -66,7 +66,7 @@ def _bad(tmp_path, text):
     ('[groom]\npreset = "mohawk"\n', "[groom].preset"),
     ('[stages]\ncollisions = "yes"\n', "[stages].collisions"),
     ('[motion]\ntype = "shake"\nfrequncy = 2.0\n', "frequncy"),
-    ('[wind]\nspeed = -3.0\n', "wind.speed"),
+    ('[wind]\nspeed = -3.0\n', "[wind].speed"),
     ('[stages]\ncollisions = true\n[[colliders]]\ntype = "sphere"\nradius = 0.1\ncentre = [0, 0, 0]\n', "centre"),
     ('[[colliders]]\ntype = "sphere"\n', "[stages].collisions"),
     ('[trim]\nnormal = [0, 0]\n', "[trim].normal"),

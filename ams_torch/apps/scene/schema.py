@@ -1,6 +1,12 @@
 """Scene files: reading and validating the TOML (every key checked; errors name the file and key).
 
-See :mod:`ams_torch.apps.scene` for the format.
+Validation is table driven: each section is a dict ``key -> (checker, default)``; a checker
+takes the value and its key name and returns the normalised value or raises
+:class:`SceneError` (``scene.toml: [groom].strands must be an integer >= 1; got 0``). Checks that
+tie keys together (exactly one groom source, stages that a section needs) run after the table.
+See :mod:`ams_torch.apps.scene` for the format. Normalisations: paths are resolved against the
+scene's folder; ``units`` becomes ``scale`` (m per file unit); a ``transform`` becomes
+``{"rotation": 3x3, "translation": [3] m}``; keyframe ``rotations`` become ``rotvecs``.
 """
 from __future__ import annotations
 
@@ -9,80 +15,430 @@ import dataclasses
 import math
 import os
 import tomllib
-from typing import Optional
+from typing import Callable, Dict, Optional
+
+import numpy as np
 
 from ams_torch.apps.motion import make_motion
 from ams_torch.sim.params import Params
 from ams_torch.stages.wind import Wind
 
-__all__ = ["SceneError", "read_toml", "load_scene", "parse_scene", "make_params", "make_collider", "SCENE_DIR"]
+__all__ = ["SceneError", "read_toml", "load_scene", "parse_scene", "make_params", "make_collider", "SCENE_DIR",
+           "check_rotation", "check_table", "is_number", "number", "integer", "boolean", "one_of", "string", "ABSENT",
+           "ROTATION_TOLERANCE", "UNITS"]
 
 SCENE_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))),
                          "datasets", "scenes")
+ROTATION_TOLERANCE = 1e-5  #: max |RᵀR − I| of a rotation matrix in a scene file
+UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}  #: file unit -> metres
+ABSENT = _ABSENT = object()  # no default: the key stays absent unless given
+_CAUGHT = (TypeError, ValueError, ArithmeticError, IndexError, KeyError, FileNotFoundError)
 
 
 class SceneError(ValueError):
     """A scene file is invalid; the message names the file and the key."""
 
 
-_TOP = {"name", "description", "frames", "dt", "substeps", "scale", "head", "groom", "params", "stages",
-        "hair_hair", "motion", "wind", "colliders", "trim", "render"}
-_HEAD = {"mesh", "subdivisions", "radius", "collide", "sdf_resolution"}
-_GROOM = {"preset", "file", "kind", "strands", "particles", "seed", "length", "radius", "spread", "growth",
-          "compare_ms", "compare_offset"}
-_STAGES = {"hair_hair", "collisions", "nonhookean"}
-_TRIM = {"frame", "point", "normal"}
-_RENDER = {"view", "fps", "size", "every"}
-_COLLIDERS = {"sphere": ("SphereCollider", {"center", "radius"}),
-              "capsule": ("CapsuleCollider", {"a", "b", "radius"}),
-              "plane": ("PlaneCollider", {"point", "normal"}),
-              "hollow_sphere": ("HollowSphereCollider", {"center", "radius", "thickness", "cut_height", "axis"})}
-_GROOM_KINDS = ("sphere", "strand", "wisp")
+class _Ctx:
+    """Where the scene came from: ``where`` (file name for messages), ``base`` (its folder), and
+    the error class to raise."""
+
+    def __init__(self, where: str, base: str, error=SceneError):
+        self.where, self.base, self.error = where, base, error
+
+    def fail(self, msg: str):
+        raise self.error(f"{self.where}: {msg}")
 
 
-def _fail(where: str, msg: str):
-    raise SceneError(f"{where}: {msg}")
+def _show(v) -> str:
+    r = repr(v)
+    return r if len(r) <= 80 else r[:77] + "..."
 
 
-def _check_keys(d: dict, allowed: set, where: str, section: str):
-    if not isinstance(d, dict):
-        _fail(where, f"[{section}] must be a table; got {type(d).__name__}")
-    unknown = sorted(set(d) - allowed)
-    if unknown:
-        _fail(where, f"unknown key(s) {unknown} in [{section}]; allowed: {sorted(allowed)}")
+# -- checkers: (value, key, ctx) -> normalised value ------------------------------------------
+def is_number(v) -> bool:
+    """A finite int or float (not a bool)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return False
+    try:
+        return math.isfinite(float(v))
+    except OverflowError:
+        return False
 
 
-def _num(v, key: str, where: str, *, integer=False, positive=False, nonneg=False):
-    ok = isinstance(v, int) if integer else isinstance(v, (int, float))
-    if isinstance(v, bool) or not ok or not math.isfinite(float(v)):
-        _fail(where, f"{key} must be {'an integer' if integer else 'a number'}; got {v!r}")
-    if positive and not v > 0:
-        _fail(where, f"{key} must be positive; got {v!r}")
-    if nonneg and not v >= 0:
-        _fail(where, f"{key} must be non-negative; got {v!r}")
-    return v
+def number(lo: Optional[float] = None, hi: Optional[float] = None, *, open_lo: bool = False, integer: bool = False):
+    """A finite number (or an int when ``integer``) in [lo, hi] (or (lo, hi] when ``open_lo``)."""
+    what = "an integer" if integer else "a finite number"
+    if lo is not None:
+        what += f" {'>' if open_lo else '>='} {lo:g}"
+    if hi is not None:
+        what += f" {'and ' if lo is not None else ''}<= {hi:g}"
+
+    def check(v, key, ctx):
+        ok = is_number(v) and (isinstance(v, int) or not integer)
+        ok = ok and (lo is None or (v > lo if open_lo else v >= lo)) and (hi is None or v <= hi)
+        if not ok:
+            ctx.fail(f"{key} must be {what}; got {_show(v)}")
+        return v
+
+    return check
 
 
-def _vec3(v, key: str, where: str):
-    if not (isinstance(v, (list, tuple)) and len(v) == 3 and all(
-            isinstance(c, (int, float)) and not isinstance(c, bool) and math.isfinite(c) for c in v)):
-        _fail(where, f"{key} must be a list of three numbers; got {v!r}")
-    return [float(c) for c in v]
+POSITIVE, NONNEG, ANY_NUMBER = number(0, open_lo=True), number(0), number()
 
 
-def _bool(v, key: str, where: str):
+def integer(lo: int = 1, hi: Optional[int] = None):
+    return number(lo, hi, integer=True)
+
+
+def boolean(v, key, ctx):
     if not isinstance(v, bool):
-        _fail(where, f"{key} must be true or false; got {v!r}")
+        ctx.fail(f"{key} must be true or false; got {_show(v)}")
     return v
 
 
-def _path(v, key: str, where: str, base: str):
+def one_of(*choices):
+    def check(v, key, ctx):
+        if not isinstance(v, str) or v not in choices:
+            ctx.fail(f"{key} must be one of {list(choices)}; got {_show(v)}")
+        return v
+
+    return check
+
+
+def string(v, key, ctx):
     if not isinstance(v, str):
-        _fail(where, f"{key} must be a file path string; got {v!r}")
-    p = v if os.path.isabs(v) else os.path.join(base, v)
-    if not os.path.isfile(p):
-        _fail(where, f"{key}: no such file {v!r} (looked for {p})")
-    return p
+        ctx.fail(f"{key} must be a string; got {_show(v)}")
+    return v
+
+
+def vec3(nonzero: bool = False):
+    def check(v, key, ctx):
+        if not (isinstance(v, (list, tuple)) and len(v) == 3 and all(is_number(c) for c in v)):
+            ctx.fail(f"{key} must be a list of three numbers; got {_show(v)}")
+        if nonzero and not any(float(c) for c in v):
+            ctx.fail(f"{key} must be non-zero; got {_show(v)}")
+        return [float(c) for c in v]
+
+    return check
+
+
+def list_of(item: Callable, min_len: int = 1):
+    def check(v, key, ctx):
+        if not isinstance(v, list) or len(v) < min_len:
+            ctx.fail(f"{key} must be a list of at least {min_len} item(s); got {_show(v)}")
+        return [item(x, f"{key}[{i}]", ctx) for i, x in enumerate(v)]
+
+    return check
+
+
+def file_path(exts=None, kind: str = "file"):
+    """An existing file (relative to the scene's folder), optionally with one of ``exts``."""
+
+    def check(v, key, ctx):
+        if not isinstance(v, str) or not v:
+            ctx.fail(f"{key} must be a file path string; got {_show(v)}")
+        allowed = exts() if callable(exts) else exts
+        ext = os.path.splitext(v)[1].lower()
+        if allowed is not None and ext not in allowed:
+            ctx.fail(f"{key}: {v!r} is not a {kind} (extension {ext or 'none'}; known: {' '.join(sorted(allowed))})")
+        p = v if os.path.isabs(v) else os.path.join(ctx.base, v)
+        if not os.path.isfile(p):
+            ctx.fail(f"{key}: no such file {v!r} (looked for {p})")
+        return p
+
+    return check
+
+
+def _matrix(v, rows: int, cols: int, key: str, ctx) -> np.ndarray:
+    if not (isinstance(v, list) and len(v) == rows and all(
+            isinstance(r, list) and len(r) == cols and all(is_number(c) for c in r) for r in v)):
+        ctx.fail(f"{key} must be a {rows}x{cols} nested list of numbers (rows); got {_show(v)}")
+    return np.asarray(v, dtype=np.float64)
+
+
+def check_rotation(r: np.ndarray, key: str, fail: Callable[[str], None], tol: float = ROTATION_TOLERANCE) -> None:
+    """Fail unless ``r`` (3, 3) is a rotation: |RᵀR − I| <= tol (max entry) and det R = +1."""
+    err = float(np.abs(r.T @ r - np.eye(3)).max())
+    if not err <= tol:
+        fail(f"{key} is not a rotation matrix: its rows are not orthonormal (max |R^T R - I| = {err:.2g}, "
+             f"tolerance {tol:g}; write the entries with at least 6 significant digits)")
+    det = float(np.linalg.det(r))
+    if det < 0:
+        fail(f"{key} is not a rotation matrix: det = {det:.6g} (a reflection; a rotation has det = +1)")
+
+
+def _nearest_rotation(r: np.ndarray) -> np.ndarray:
+    u, _, vt = np.linalg.svd(r)
+    return u @ vt
+
+
+def rotation(v, key, ctx):
+    """A 3x3 rotation (rows), checked to ``ROTATION_TOLERANCE`` and returned as the nearest exact
+    rotation (so later float64 checks of orthonormality pass)."""
+    r = _matrix(v, 3, 3, key, ctx)
+    check_rotation(r, key, ctx.fail)
+    return _nearest_rotation(r).tolist()
+
+
+def transform(v, key, ctx):
+    """A rigid transform: a 4x4 nested list [[R, t], [0, 0, 0, 1]] or a table ``{rotation = 3x3,
+    translation = [3]}`` (either may be left out). Returns ``{"rotation", "translation"}``."""
+    if isinstance(v, dict):
+        t = _table(v, {"rotation": (rotation, np.eye(3).tolist()), "translation": (vec3(), [0.0, 0.0, 0.0])},
+                   key.strip("[]").replace("].", "."), ctx)
+        return t
+    m = _matrix(v, 4, 4, key, ctx)
+    if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9, rtol=0):
+        ctx.fail(f"{key}: the last row of a 4x4 transform must be [0, 0, 0, 1]; got {m[3].tolist()}")
+    check_rotation(m[:3, :3], f"{key} (its upper-left 3x3)", ctx.fail)
+    return {"rotation": _nearest_rotation(m[:3, :3]).tolist(), "translation": m[:3, 3].tolist()}
+
+
+def _table(d, spec: Dict[str, tuple], section: str, ctx) -> dict:
+    """Check table ``d`` against ``spec`` (key -> (checker, default)); returns the checked copy
+    with defaults filled in (``_ABSENT``: none)."""
+    if not isinstance(d, dict):
+        ctx.fail(f"[{section}] must be a table; got {_show(d)}")
+    unknown = sorted(str(k) for k in d if k not in spec)
+    if unknown:
+        ctx.fail(f"unknown key(s) {unknown} in [{section}]; allowed: {sorted(spec)}")
+    prefix = "" if section == "top level" else f"[{section}]."
+    out = {}
+    for k, (check, default) in spec.items():
+        if k in d:
+            out[k] = check(d[k], prefix + k, ctx)
+        elif default is not _ABSENT:
+            out[k] = copy.deepcopy(default)
+    return out
+
+
+def check_table(d, spec: Dict[str, tuple], section: str, where: str, base: str = ".", error=SceneError) -> dict:
+    """Check table ``d`` against ``spec`` (key -> (checker, default or ``ABSENT``)); raises
+    ``error`` naming ``where`` and the key. Returns the checked copy with defaults filled in."""
+    return _table(d, spec, section, _Ctx(where, base, error))
+
+
+def _construct(fn, args: dict, section: str, ctx, prefix: str = ""):
+    """Call a constructor with checked arguments; its ValueError/TypeError becomes a SceneError."""
+    try:
+        return fn(**args)
+    except _CAUGHT as err:
+        msg = str(err).replace(prefix, f"[{section}].") if prefix else str(err)
+        ctx.fail(msg if msg.startswith(f"[{section}]") else f"[{section}]: {msg}")
+
+
+# -- sections ---------------------------------------------------------------------------------
+def _mesh_exts():
+    import trimesh
+
+    return {f".{e}" for e in trimesh.exchange.load.available_formats()} | {".tfxmesh"}
+
+
+def _groom_exts():
+    from ams_torch.grooms.io import FORMATS
+
+    return set(FORMATS)
+
+
+_IMPORT = {"units": (one_of(*UNITS), _ABSENT), "scale": (POSITIVE, _ABSENT), "up_axis": (one_of("y", "z"), _ABSENT),
+           "transform": (transform, _ABSENT)}
+
+
+def _imported(t: dict, section: str, from_file: bool, source: str, ctx) -> None:
+    """units/scale/up_axis/transform: only for a file source; normalise units -> scale."""
+    given = [k for k in _IMPORT if k in t]
+    if given and not from_file:
+        ctx.fail(f"[{section}].{given[0]} applies to a file ({source}); this {section} is not read from a file")
+    if "units" in t and "scale" in t:
+        ctx.fail(f"[{section}]: give units or scale, not both (units = {t['units']!r}, scale = {t['scale']!r})")
+    if from_file:
+        t["scale"] = UNITS[t.pop("units")] if "units" in t else t.get("scale", 1.0)
+        t.setdefault("up_axis", "y")
+
+
+def _head_mesh(v, key, ctx):
+    if isinstance(v, str) and v in ("default", "sphere", "none"):
+        return v
+    if not isinstance(v, str):
+        ctx.fail(f"{key} must be 'default', 'sphere', 'none' or a mesh file path; got {_show(v)}")
+    return file_path(_mesh_exts, "mesh file")(v, key, ctx)
+
+
+HEAD = {"mesh": (_head_mesh, "default"), "subdivisions": (integer(1, 8), 4), "radius": (POSITIVE, 0.1),
+        "collide": (boolean, _ABSENT), "sdf_resolution": (integer(8, 1024), 64), **_IMPORT}
+
+
+def _head(raw, ctx) -> dict:
+    h = _table(raw, HEAD, "head", ctx)
+    h.setdefault("collide", h["mesh"] != "none")
+    _imported(h, "head", h["mesh"] not in ("default", "sphere", "none"), "[head].mesh = path", ctx)
+    return h
+
+
+def _any(v, key, ctx):
+    return v
+
+
+def _growth(v, key, ctx):
+    from ams_torch.grooms.growth import GrowthParams
+
+    if not isinstance(v, dict):
+        ctx.fail(f"{key} must be a table; got {_show(v)}")
+    fields = {f.name: f.default for f in dataclasses.fields(GrowthParams)}
+    spec = {k: (boolean if isinstance(d, bool) else integer(1) if k == "steps" or isinstance(d, int) else ANY_NUMBER
+                if isinstance(d, float) else _any, _ABSENT) for k, d in fields.items()}
+    spec.update({k: (POSITIVE, _ABSENT) for k in ("tail_length", "tie_radius", "spread")})
+    spec["region"] = (_any, _ABSENT)
+    return _table(v, spec, "groom.growth", ctx)
+
+
+def _groom_preset(v, key, ctx):
+    from ams_torch.grooms.growth import PRESETS
+
+    return one_of(*PRESETS)(v, key, ctx)
+
+
+GROOM = {"preset": (_groom_preset, _ABSENT), "file": (file_path(_groom_exts, "groom file"), _ABSENT),
+         "kind": (one_of("sphere", "strand", "wisp"), _ABSENT), "strands": (integer(1), _ABSENT),
+         "particles": (integer(4), _ABSENT), "seed": (integer(0), _ABSENT), "length": (POSITIVE, _ABSENT),
+         "radius": (POSITIVE, _ABSENT), "spread": (POSITIVE, _ABSENT), "growth": (_growth, _ABSENT),
+         "compare_ms": (boolean, False), "compare_offset": (vec3(), [0.1, 0.0, 0.0]), "bind": (boolean, _ABSENT),
+         "max_bind_distance": (POSITIVE, _ABSENT), **_IMPORT}
+
+
+def _groom(raw, head: dict, ctx) -> dict:
+    g = _table(raw, GROOM, "groom", ctx)
+    sources = [k for k in ("preset", "file", "kind") if k in g]
+    if len(sources) != 1:
+        ctx.fail(f"[groom] needs exactly one of preset, file, kind; got {sources}")
+    if "preset" in g and head["mesh"] in ("sphere", "none"):
+        ctx.fail("[groom].preset grows on a head mesh: set [head].mesh to 'default' or a file")
+    if "growth" in g and "preset" not in g:
+        ctx.fail("[groom].growth sets growth parameters of a preset; this groom has no preset")
+    if "growth" in g and g["preset"] != "ponytail":
+        from ams_torch.grooms.growth import GrowthParams
+
+        args = {k: v for k, v in g["growth"].items() if k not in ("region", "tail_length", "tie_radius", "spread")}
+        _construct(GrowthParams, args, "groom.growth", ctx)
+    _imported(g, "groom", "file" in g, "[groom].file", ctx)
+    if g.get("bind"):
+        if "file" not in g:
+            ctx.fail("[groom].bind binds a groom read from a file ([groom].file) to the head mesh")
+        if head["mesh"] in ("sphere", "none"):
+            ctx.fail(f"[groom].bind needs a head mesh to bind to ([head].mesh = 'default' or a file); "
+                     f"got {head['mesh']!r}")
+    if "max_bind_distance" in g and not g.get("bind"):
+        ctx.fail("[groom].max_bind_distance needs bind = true")
+    return g
+
+
+def _params_spec() -> dict:
+    spec = {}
+    for f in dataclasses.fields(Params):
+        d = f.default
+        spec[f.name] = (boolean if isinstance(d, bool) else one_of("hookean", "nonhookean")
+                        if f.name == "integrity_model" else string if isinstance(d, str) else vec3()
+                        if isinstance(d, tuple) else integer(0) if isinstance(d, int) else ANY_NUMBER, _ABSENT)
+    return spec
+
+
+def _hair_hair_spec() -> dict:
+    from ams_torch.stages.hair_hair import HairHair
+
+    return {f.name: (boolean if isinstance(f.default, bool) else integer(0) if isinstance(f.default, int)
+                     else ANY_NUMBER, _ABSENT) for f in dataclasses.fields(HairHair)}
+
+
+def _keyframes(m: dict, section: str, ctx) -> None:
+    """Keyframe motions: lengths agree; ``rotations`` (validated rotations) become ``rotvecs``."""
+    k = len(m["times"])
+    if any(b <= a for a, b in zip(m["times"], m["times"][1:])):
+        ctx.fail(f"[{section}].times must be strictly increasing (s); got {_show(m['times'])}")
+    for name in ("rotvecs", "translations", "rotations"):
+        if name in m and len(m[name]) != k:
+            ctx.fail(f"[{section}].{name} has {len(m[name])} entries; [{section}].times has {k}")
+    if "rotations" in m:
+        if "rotvecs" in m:
+            ctx.fail(f"[{section}]: give rotvecs or rotations, not both")
+        from ams_torch.geometry.pose import matrix_to_axis_angle
+        import torch
+
+        m["rotvecs"] = matrix_to_axis_angle(torch.tensor(m.pop("rotations"), dtype=torch.float64)).tolist()
+
+
+_AXIS = (vec3(nonzero=True), _ABSENT)
+MOTIONS = {
+    "static": {},
+    "shake": {"amplitude": (ANY_NUMBER, _ABSENT), "frequency": (ANY_NUMBER, _ABSENT), "axis": _AXIS},
+    "nod": {"amplitude": (ANY_NUMBER, _ABSENT), "frequency": (ANY_NUMBER, _ABSENT), "axis": _AXIS},
+    "spin": {"rate": (ANY_NUMBER, _ABSENT), "ramp": (NONNEG, _ABSENT), "axis": _AXIS},
+    "roller_coaster": {"radius": (POSITIVE, _ABSENT), "peak_g": (POSITIVE, _ABSENT), "loops": (integer(1), _ABSENT)},
+    "keyframes": {"times": (list_of(ANY_NUMBER), _ABSENT), "rotvecs": (list_of(vec3()), _ABSENT),
+                  "translations": (list_of(vec3()), _ABSENT), "rotations": (list_of(rotation), _ABSENT)},
+    "recorded": {"path": (file_path({".npz"}, "recorded motion (.npz)"), _ABSENT)},
+}
+
+
+def motion_section(raw, section: str, ctx) -> dict:
+    """Validate a motion table (``type`` and that motion's arguments)."""
+    if not isinstance(raw, dict):
+        ctx.fail(f"[{section}] must be a table; got {_show(raw)}")
+    kind = one_of(*MOTIONS)(raw.get("type", "static"), f"[{section}].type", ctx)
+    m = {"type": kind, **_table({k: v for k, v in raw.items() if k != "type"}, MOTIONS[kind], section, ctx)}
+    if kind == "keyframes":
+        if "times" not in m:
+            ctx.fail(f"[{section}].times is required for keyframes")
+        _keyframes(m, section, ctx)
+    if kind == "recorded" and "path" not in m:
+        ctx.fail(f"[{section}].path is required for a recorded motion")
+    _construct(make_motion, {"spec": m}, section, ctx)
+    return m
+
+
+WIND = {"direction": (vec3(nonzero=True), _ABSENT), "speed": (NONNEG, _ABSENT), "gust": (NONNEG, _ABSENT),
+        "gust_frequency": (ANY_NUMBER, _ABSENT), "turbulence": (NONNEG, _ABSENT), "noise_scale": (POSITIVE, _ABSENT),
+        "noise_frequency": (ANY_NUMBER, _ABSENT), "modes": (integer(1, 1024), _ABSENT),
+        "seed": (integer(0, 2**63 - 1), _ABSENT), "coefficient": (NONNEG, _ABSENT)}
+_COLLIDER_ARGS = {"friction": (NONNEG, _ABSENT), "follow_head": (boolean, _ABSENT)}
+COLLIDERS = {
+    "sphere": ("SphereCollider", {"center": (vec3(), _ABSENT), "radius": (POSITIVE, _ABSENT)}),
+    "capsule": ("CapsuleCollider", {"a": (vec3(), _ABSENT), "b": (vec3(), _ABSENT), "radius": (POSITIVE, _ABSENT)}),
+    "plane": ("PlaneCollider", {"point": (vec3(), _ABSENT), "normal": (vec3(nonzero=True), _ABSENT)}),
+    "hollow_sphere": ("HollowSphereCollider", {"center": (vec3(), _ABSENT), "radius": (POSITIVE, _ABSENT),
+                                               "thickness": (POSITIVE, _ABSENT), "cut_height": (ANY_NUMBER, _ABSENT),
+                                               "axis": _AXIS}),
+}
+
+
+def _colliders(raw, stages: dict, ctx) -> list:
+    if not isinstance(raw, list):
+        ctx.fail(f"[[colliders]] must be an array of tables; got {_show(raw)}")
+    out = []
+    for i, c in enumerate(raw):
+        sec = f"colliders[{i}]"
+        kind = c.get("type") if isinstance(c, dict) else c
+        if not isinstance(kind, str) or kind not in COLLIDERS:
+            ctx.fail(f"[{sec}].type must be one of {sorted(COLLIDERS)}; got {_show(kind)}")
+        spec = {"type": (string, _ABSENT), **COLLIDERS[kind][1], **_COLLIDER_ARGS,
+                "motion": ((lambda v, k, cx, s=sec: motion_section(v, f"{s}.motion", cx)), _ABSENT)}
+        c = _table(c, spec, sec, ctx)
+        _construct(make_collider, {"c": c}, sec, ctx)
+        out.append(c)
+    if out and not stages["collisions"]:
+        ctx.fail("[[colliders]] given but [stages].collisions is false")
+    return out
+
+
+STAGES = {k: (boolean, False) for k in ("hair_hair", "collisions", "nonhookean")}
+TRIM = {"frame": (integer(1), 1), "point": (vec3(), [0.0, 0.0, 0.0]), "normal": (vec3(nonzero=True), [0.0, -1.0, 0.0])}
+RENDER = {"view": (one_of("front", "side", "back"), _ABSENT), "fps": (POSITIVE, _ABSENT), "size": (POSITIVE, _ABSENT),
+          "every": (integer(1), _ABSENT)}
+_SECTION = (_any, _ABSENT)  # checked by its own section validator below
+TOP = {"name": (string, "scene"), "description": (string, _ABSENT), "frames": (integer(1), 60),
+       "dt": (POSITIVE, _ABSENT), "substeps": (integer(1), _ABSENT), "scale": (POSITIVE, 1.0),
+       **{k: _SECTION for k in ("head", "groom", "params", "stages", "hair_hair", "motion", "wind", "colliders",
+                                "trim", "render")}}
 
 
 def read_toml(path: str, kind: str, error=None, overrides: Optional[dict] = None) -> dict:
@@ -95,7 +451,7 @@ def read_toml(path: str, kind: str, error=None, overrides: Optional[dict] = None
     with open(path, "rb") as f:
         try:
             raw = tomllib.load(f)
-        except tomllib.TOMLDecodeError as err:
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
             raise error(f"{path}: not valid TOML: {err}") from None
     raw.setdefault("name", os.path.splitext(os.path.basename(path))[0])
     raw.update(overrides or {})
@@ -110,151 +466,31 @@ def load_scene(path: str, overrides: Optional[dict] = None) -> dict:
 
 
 def parse_scene(raw: dict, where: str = "scene", base: str = ".") -> dict:
-    """Validate a scene dict (as read from TOML); returns a normalised deep copy.
-    Raises :class:`SceneError` naming the key on any problem."""
-    s = copy.deepcopy(raw)
-    _check_keys(s, _TOP, where, "top level")
-    s.setdefault("name", "scene")
-    if not isinstance(s["name"], str):
-        _fail(where, f"name must be a string; got {s['name']!r}")
-    s["frames"] = _num(s.get("frames", 60), "frames", where, integer=True, positive=True)
-    s["scale"] = _num(s.get("scale", 1.0), "scale", where, positive=True)
-    if "dt" in s:
-        _num(s["dt"], "dt", where, positive=True)
-    if "substeps" in s:
-        _num(s["substeps"], "substeps", where, integer=True, positive=True)
+    """Validate a scene dict (as read from TOML); returns a normalised deep copy (defaults
+    filled in, paths resolved). Raises :class:`SceneError` naming the file and the key."""
+    ctx = _Ctx(where, base)
+    s = _table(copy.deepcopy(raw), TOP, "top level", ctx)
+    s["head"] = _head(s.get("head", {}), ctx)
+    s["groom"] = _groom(s.get("groom", {"kind": "sphere"}), s["head"], ctx)
+    s["stages"] = _table(s.get("stages", {}), STAGES, "stages", ctx)
+    s["params"] = _table(s.get("params", {}), _params_spec(), "params", ctx)
+    _construct(lambda: make_params(s), {}, "params", ctx, prefix="Params.")
+    if "hair_hair" in s:
+        from ams_torch.stages.hair_hair import HairHair
 
-    head = s.setdefault("head", {})
-    _check_keys(head, _HEAD, where, "head")
-    mesh = head.setdefault("mesh", "default")
-    if not isinstance(mesh, str):
-        _fail(where, f"[head].mesh must be 'default', 'sphere', 'none' or a file path; got {mesh!r}")
-    if mesh not in ("default", "sphere", "none"):
-        head["mesh"] = _path(mesh, "[head].mesh", where, base)
-    head["subdivisions"] = _num(head.get("subdivisions", 4), "[head].subdivisions", where, integer=True, positive=True)
-    head["radius"] = _num(head.get("radius", 0.1), "[head].radius", where, positive=True)
-    head["sdf_resolution"] = _num(head.get("sdf_resolution", 64), "[head].sdf_resolution", where, integer=True,
-                                  positive=True)
-    head["collide"] = _bool(head.get("collide", mesh != "none"), "[head].collide", where)
-
-    groom = s.setdefault("groom", {"kind": "sphere"})
-    _check_keys(groom, _GROOM, where, "groom")
-    sources = [k for k in ("preset", "file", "kind") if k in groom]
-    if len(sources) != 1:
-        _fail(where, f"[groom] needs exactly one of preset, file, kind; got {sources}")
-    if "preset" in groom:
-        from ams_torch.grooms.growth import PRESETS
-
-        if groom["preset"] not in PRESETS:
-            _fail(where, f"[groom].preset must be one of {list(PRESETS)}; got {groom['preset']!r}")
-        if mesh in ("sphere", "none"):
-            _fail(where, "[groom].preset grows on a head mesh: set [head].mesh to 'default' or a file")
-    if "file" in groom:
-        groom["file"] = _path(groom["file"], "[groom].file", where, base)
-    if "kind" in groom and groom["kind"] not in _GROOM_KINDS:
-        _fail(where, f"[groom].kind must be one of {list(_GROOM_KINDS)}; got {groom['kind']!r}")
-    for key in ("strands", "particles", "seed"):
-        if key in groom:
-            _num(groom[key], f"[groom].{key}", where, integer=True, nonneg=(key == "seed"), positive=(key != "seed"))
-    for key in ("length", "radius", "spread"):
-        if key in groom:
-            _num(groom[key], f"[groom].{key}", where, positive=True)
-    if "growth" in groom:
-        _check_keys(groom["growth"], set(groom["growth"]), where, "groom.growth")
-    groom["compare_ms"] = _bool(groom.get("compare_ms", False), "[groom].compare_ms", where)
-    groom["compare_offset"] = _vec3(groom.get("compare_offset", [0.1, 0.0, 0.0]), "[groom].compare_offset", where)
-
-    stages = s.setdefault("stages", {})
-    _check_keys(stages, _STAGES, where, "stages")
-    for k in _STAGES:
-        stages[k] = _bool(stages.get(k, False), f"[stages].{k}", where)
-
-    params = s.setdefault("params", {})
-    names = {f.name: f for f in dataclasses.fields(Params)}
-    _check_keys(params, set(names), where, "params")
-    for k, v in params.items():
-        default = getattr(Params(), k)
-        if isinstance(default, bool):
-            _bool(v, f"[params].{k}", where)
-        elif isinstance(default, str):
-            if not isinstance(v, str):
-                _fail(where, f"[params].{k} must be a string; got {v!r}")
-        elif isinstance(default, tuple):
-            params[k] = _vec3(v, f"[params].{k}", where)
-        else:
-            _num(v, f"[params].{k}", where, integer=isinstance(default, int))
-    try:
-        make_params(s)
-    except ValueError as err:
-        msg = str(err).replace("Params.", "[params].")
-        _fail(where, msg)
-
-    hh = s.get("hair_hair", {})
-    from ams_torch.stages.hair_hair import HairHair
-
-    _check_keys(hh, {f.name for f in dataclasses.fields(HairHair)}, where, "hair_hair")
-    if hh and not stages["hair_hair"]:
-        _fail(where, "[hair_hair] settings given but [stages].hair_hair is false")
-    try:
-        HairHair(**hh)
-    except (TypeError, ValueError) as err:
-        _fail(where, f"[hair_hair]: {err}")
-
+        s["hair_hair"] = _table(s["hair_hair"], _hair_hair_spec(), "hair_hair", ctx)
+        if s["hair_hair"] and not s["stages"]["hair_hair"]:
+            ctx.fail("[hair_hair] settings given but [stages].hair_hair is false")
+        _construct(HairHair, s["hair_hair"], "hair_hair", ctx, prefix="HairHair.")
     if "motion" in s:
-        if not isinstance(s["motion"], dict):
-            _fail(where, f"[motion] must be a table; got {s['motion']!r}")
-        m = dict(s["motion"])
-        if m.get("type") == "recorded" and "path" in m:
-            s["motion"]["path"] = _path(m["path"], "[motion].path", where, base)
-        try:
-            make_motion(s["motion"])
-        except (TypeError, ValueError, FileNotFoundError) as err:
-            _fail(where, f"[motion]: {err}")
-
+        s["motion"] = motion_section(s["motion"], "motion", ctx)
     if "wind" in s:
-        _check_keys(s["wind"], {f.name for f in dataclasses.fields(Wind)}, where, "wind")
-        try:
-            Wind(**s["wind"])
-        except (TypeError, ValueError) as err:
-            _fail(where, f"[wind]: {err}")
-
-    cols = s.setdefault("colliders", [])
-    if not isinstance(cols, list):
-        _fail(where, "[[colliders]] must be an array of tables")
-    for i, c in enumerate(cols):
-        sec = f"colliders[{i}]"
-        if not isinstance(c, dict) or c.get("type") not in _COLLIDERS:
-            _fail(where, f"[{sec}].type must be one of {sorted(_COLLIDERS)}; got {c.get('type') if isinstance(c, dict) else c!r}")
-        _check_keys(c, _COLLIDERS[c["type"]][1] | {"type", "friction", "follow_head", "motion"}, where, sec)
-        if "motion" in c:
-            try:
-                make_motion(c["motion"])
-            except (TypeError, ValueError, FileNotFoundError) as err:
-                _fail(where, f"[{sec}.motion]: {err}")
-        try:
-            make_collider(c)
-        except (TypeError, ValueError) as err:
-            _fail(where, f"[{sec}]: {err}")
-    if cols and not stages["collisions"]:
-        _fail(where, "[[colliders]] given but [stages].collisions is false")
-
+        s["wind"] = _table(s["wind"], WIND, "wind", ctx)
+        _construct(Wind, s["wind"], "wind", ctx, prefix="wind.")
+    s["colliders"] = _colliders(s.get("colliders", []), s["stages"], ctx)
     if "trim" in s:
-        t = s["trim"]
-        _check_keys(t, _TRIM, where, "trim")
-        t["frame"] = _num(t.get("frame", 1), "[trim].frame", where, integer=True, positive=True)
-        t["point"] = _vec3(t.get("point", [0.0, 0.0, 0.0]), "[trim].point", where)
-        t["normal"] = _vec3(t.get("normal", [0.0, -1.0, 0.0]), "[trim].normal", where)
-        if not any(t["normal"]):
-            _fail(where, "[trim].normal must be non-zero")
-    r = s.setdefault("render", {})
-    _check_keys(r, _RENDER, where, "render")
-    if "view" in r and r["view"] not in ("front", "side", "back"):
-        _fail(where, f"[render].view must be front, side or back; got {r['view']!r}")
-    for k in ("fps", "size"):
-        if k in r:
-            _num(r[k], f"[render].{k}", where, positive=True)
-    if "every" in r:
-        _num(r["every"], "[render].every", where, integer=True, positive=True)
+        s["trim"] = _table(s["trim"], TRIM, "trim", ctx)
+    s["render"] = _table(s.get("render", {}), RENDER, "render", ctx)
     return s
 
 
@@ -273,9 +509,10 @@ def make_params(scene: dict) -> Params:
 
 
 def make_collider(c: dict):
+    """The collider of a validated ``[[colliders]]`` table (its ``motion`` is not part of it)."""
     from ams_torch.stages import collide as C
 
-    cls = getattr(C, _COLLIDERS[c["type"]][0])
+    cls = getattr(C, COLLIDERS[c["type"]][0])
     args = {k: v for k, v in c.items() if k not in ("type", "motion")}
     for k in ("center", "a", "b", "point", "normal", "axis"):
         if k in args:
