@@ -54,6 +54,23 @@ def ray_parity_inside(mesh, points):
     return votes >= 2
 
 
+def hemisphere(r, rings=16, segments=48):
+    """An open cup: the upper half (y ≥ 0) of a sphere of radius r, outward faces, rim at y = 0."""
+    theta = np.linspace(0.0, np.pi / 2, rings + 1)[1:]
+    phi = 2 * np.pi * np.arange(segments) / segments
+    ring = np.stack([np.sin(theta)[:, None] * np.cos(phi), np.cos(theta)[:, None] + 0 * phi,
+                     np.sin(theta)[:, None] * np.sin(phi)], -1).reshape(-1, 3)
+    verts = np.concatenate([[[0.0, 1.0, 0.0]], ring]) * r
+    k, k1 = np.arange(segments), (np.arange(segments) + 1) % segments
+    faces = [np.stack([np.zeros(segments, int), 1 + k1, 1 + k], 1)]
+    for j in range(rings - 1):
+        a, b = 1 + j * segments, 1 + (j + 1) * segments
+        faces += [np.stack([a + k, a + k1, b + k1], 1), np.stack([a + k, b + k1, b + k], 1)]
+    mesh = trimesh.Trimesh(verts, np.concatenate(faces), process=False)
+    assert (mesh.face_normals * mesh.triangles_center).sum(1).min() > 0  # outward
+    return mesh
+
+
 def near_surface_points(mesh, count, lo, hi, seed):
     rng = np.random.default_rng(seed)
     pts, fid = trimesh.sample.sample_surface(mesh, count, seed=seed)
@@ -101,27 +118,113 @@ def test_default_head_regions(head):
     np.testing.assert_array_equal(fresh.metadata["regions"]["scalp"], regions["scalp"])
 
 
-def test_load_mesh_roundtrip_and_non_watertight(tmp_path, caplog):
+def test_load_mesh_roundtrip_open_meshes_and_repair(tmp_path, caplog):
     box = trimesh.creation.box((0.1, 0.2, 0.3))
     good = tmp_path / "box.ply"
     box.export(good)
     loaded = load_mesh(good)
     assert loaded.is_watertight and math.isclose(loaded.volume, 0.006, rel_tol=1e-6)
+    assert loaded.metadata["source"] == str(good)
 
+    # open meshes load as they are (real heads are open at the neck) ...
     holed = trimesh.Trimesh(box.vertices, box.faces[1:], process=False)
     bad = tmp_path / "holed_box.obj"
     holed.export(bad)
-    with pytest.raises(ValueError, match="holed_box.obj.*not watertight"):
-        load_mesh(bad)
-    with caplog.at_level("WARNING"):
+    opened = load_mesh(bad)
+    assert not opened.is_watertight and len(opened.faces) == 11
+    # ... and repair=True is an optional clean-up: it closes what it can ...
+    with caplog.at_level("INFO"):
         fixed = load_mesh(bad, repair=True)
     assert fixed.is_watertight and fixed.volume > 0
-    assert any("repairing" in r.message for r in caplog.records)
+    assert any("repaired" in r.message for r in caplog.records)
+    # ... and no longer fails when a hole stays open
+    cup = tmp_path / "cup.ply"
+    hemisphere(0.1).export(cup)
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        still_open = load_mesh(cup, repair=True)
+    assert not still_open.is_watertight
+    assert any("stay open" in r.message for r in caplog.records)
 
-    from ams_torch.stages.collide import MeshCollider
 
-    with pytest.raises(ValueError, match="not watertight"):
-        MeshCollider(holed)
+def test_load_mesh_rejects_broken_meshes_naming_the_file_and_problem(tmp_path):
+    cases = {
+        "points.obj": ("v 0 0 0\nv 1 0 0\nv 0 1 0\n", "no triangle faces found"),
+        "nan.obj": ("v 0 0 nan\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", "1 of 3 vertices have NaN/Inf coordinates"),
+        "index.obj": ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n", "face index is out of range"),
+        "index.ply": ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                      "property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
+                      "0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n", r"face 0 refers to vertex 7, outside \[0, 3\)"),
+    }
+    for name, (text, problem) in cases.items():
+        path = tmp_path / name
+        path.write_text(text)
+        with pytest.raises(ValueError, match=problem) as err:
+            load_mesh(path)
+        assert str(err.value).startswith(str(path)), str(err.value)
+    with pytest.raises(FileNotFoundError, match="no such mesh file"):
+        load_mesh(tmp_path / "missing.obj")
+
+
+def test_load_mesh_units_axes_transform_and_size_warning(tmp_path):
+    from ams_torch.geometry.units import ImplausibleSizeWarning
+
+    box = trimesh.creation.box((10.0, 20.0, 30.0))  # centimetres
+    box.apply_translation((1.0, 2.0, 3.0))
+    path = tmp_path / "cm.obj"
+    box.export(path)
+    with pytest.warns(ImplausibleSizeWarning, match=r"mesh width .* is 30 m, more than 1 m"):
+        load_mesh(path)
+    m = load_mesh(path, units="cm", up_axis="z", transform=(np.eye(3), (0.0, 0.5, 0.0)))
+    np.testing.assert_allclose(m.extents, [0.1, 0.3, 0.2], rtol=1e-12)  # z-up: the 30 cm side is now y
+    np.testing.assert_allclose(m.bounds.mean(0), [0.01, 0.03 + 0.5, -0.02], atol=1e-12)
+    assert m.is_watertight and m.volume > 0  # a proper rotation keeps the outward orientation
+
+
+def _tfxmesh_text(vertices, faces, bones=("root_JNT", "head_JNT")):
+    lines = ["# TressFX collision mesh (test)", f"numOfBones {len(bones)}", "# bone index, bone name"]
+    lines += [f"{i} {b}" for i, b in enumerate(bones)]
+    lines += [f"numOfVertices {len(vertices)}", "# vertex index, x y z, normal, joints, weights"]
+    for i, v in enumerate(vertices):
+        n = v / np.linalg.norm(v)
+        lines.append(f"{i} {v[0]:.9g} {v[1]:.9g} {v[2]:.9g} {n[0]:.6g} {n[1]:.6g} {n[2]:.6g} 1 0 0 0 0.75 0.25 0 0")
+    lines += [f"numOfTriangles {len(faces)}", "# triangle index, vertex index 0, 1, 2"]
+    lines += [f"{i} {a} {b} {c}" for i, (a, b, c) in enumerate(faces)]
+    return "\n".join(lines) + "\n"
+
+
+def test_tfxmesh_reading_and_broken_files(tmp_path):
+    ico = trimesh.creation.icosphere(subdivisions=1, radius=0.1)
+    v, f = np.asarray(ico.vertices), np.asarray(ico.faces)
+    text = _tfxmesh_text(v, f)
+    path = tmp_path / "body.tfxmesh"
+    path.write_text(text)
+    m = load_mesh(path)
+    np.testing.assert_allclose(m.vertices, v, atol=1e-9)  # vertex order kept (process=False)
+    np.testing.assert_array_equal(m.faces, f)
+    assert m.metadata["tfx_bones"] == ["root_JNT", "head_JNT"] and m.is_watertight
+    assert m.metadata["tfx_bone_indices"].shape == (len(v), 4) and np.all(m.metadata["tfx_bone_indices"][:, 0] == 1)
+    np.testing.assert_allclose(m.metadata["tfx_bone_weights"][0], [0.75, 0.25, 0, 0])
+    z = load_mesh(path, up_axis="z")  # normals turn with the mesh
+    n0 = m.metadata["tfx_normals"][0]
+    np.testing.assert_allclose(z.metadata["tfx_normals"][0], [n0[0], n0[2], -n0[1]], atol=1e-6)
+
+    lines = text.splitlines(keepends=True)
+    cut = "".join(lines[: len(lines) // 2])
+    broken = {
+        "cut.tfxmesh": (cut.encode(), r"truncated or corrupt \.tfxmesh file: numOfTriangles 80 \(line 50\) but only 14"),
+        "count.tfxmesh": (text.replace("numOfTriangles 80", "numOfTriangles 81").encode(), "numOfTriangles 81"),
+        "flip.tfxmesh": (text.encode()[:200] + b"\xff\xfe" + text.encode()[202:], "byte 200 .* is not UTF-8"),
+        "word.tfxmesh": (text.replace("0.75", "heavy", 1).encode(), r"non-numeric value on line \d+"),
+        "range.tfxmesh": (text.replace(f"79 {f[79][0]} ", "79 420 ").encode(), r"refers to vertex 420, outside \[0, 42\)"),
+        "nothing.tfxmesh": (b"# empty\n", "no numOfVertices section"),
+    }
+    for name, (data, problem) in broken.items():
+        p = tmp_path / name
+        p.write_bytes(data)
+        with pytest.raises(ValueError, match=problem) as err:
+            load_mesh(p)
+        assert str(err.value).startswith(str(p)), str(err.value)
 
 
 # ---------------------------------------------------------------------------------------
@@ -233,3 +336,96 @@ def test_sdf_disk_cache(head, tmp_path, monkeypatch):
     path.write_bytes(b"not an npz")
     d = SDFGrid.from_mesh(mesh, resolution=16)
     torch.testing.assert_close(d.values, a.values)
+
+
+# ---------------------------------------------------------------------------------------
+# open meshes, several parts, flipped triangles (SPEC §14)
+# ---------------------------------------------------------------------------------------
+def test_sdf_of_an_open_hemisphere_cup(tmp_path):
+    """For an open part, "inside" is what the surface and the cap spanning its hole enclose:
+    for this cup, the upper half ball. Queries stay away from the cap (y = 0), where the
+    winding number is 1/2 and the sign is ambiguous."""
+    r = 0.1
+    cup = hemisphere(r)
+    grid = SDFGrid.from_mesh(cup, resolution=48, cache=False)
+    rng = np.random.default_rng(0)
+    p = rng.uniform(-1.3 * r, 1.3 * r, (8000, 3))
+    dist = np.linalg.norm(p, axis=1)
+    inside = (dist < 0.85 * r) & (p[:, 1] > 0.25 * r)
+    outside = (dist > 1.15 * r) | (p[:, 1] < -0.25 * r)
+    sigma = grid.distance(torch.as_tensor(p, dtype=torch.float32)).numpy()
+    assert inside.sum() > 250 and outside.sum() > 4000
+    assert np.all(sigma[inside] < 0) and np.all(sigma[outside] > 0)
+    # distances to the cup where the closest point is on it (y > 0): | |p| − r |, up to faceting
+    upper = (p[:, 1] > 0.25 * r) & (np.abs(dist - r) < 0.3 * r)
+    exact = np.abs(dist - r)
+    facet = r * (1 - np.cos(np.pi / 48))
+    assert np.abs(np.abs(sigma[upper]) - exact[upper]).max() < 0.5 * grid.voxel_size + facet
+
+
+def test_sdf_of_a_cube_with_a_missing_and_a_flipped_face():
+    h = 0.05
+    box = trimesh.creation.box((2 * h, 2 * h, 2 * h))
+    faces = np.asarray(box.faces)
+    normals = box.face_normals
+    top = normals[:, 1] > 0.9  # +y face: removed
+    side = normals[:, 0] > 0.9  # +x face: flipped
+    faces = np.concatenate([faces[~top & ~side], faces[side][:, ::-1]])
+    mesh = trimesh.Trimesh(box.vertices, faces, process=False)
+    assert not mesh.is_watertight and not mesh.is_winding_consistent
+    grid = SDFGrid.from_mesh(mesh, resolution=48, cache=False)
+    rng = np.random.default_rng(1)
+    # inside, away from the missing top: exact distance to the five remaining faces
+    q_in = rng.uniform([-0.045, -0.045, -0.045], [0.045, 0.0, 0.045], (2000, 3))
+    d_in = np.minimum.reduce([h - np.abs(q_in[:, 0]), h - np.abs(q_in[:, 2]), q_in[:, 1] + h])
+    # outside: beside the flipped +x face and below the bottom face
+    q_x = rng.uniform([0.055, -0.04, -0.04], [0.08, 0.04, 0.04], (500, 3))
+    q_y = rng.uniform([-0.04, -0.08, -0.04], [0.04, -0.055, 0.04], (500, 3))
+    q = np.concatenate([q_in, q_x, q_y])
+    exact = np.concatenate([-d_in, q_x[:, 0] - h, -h - q_y[:, 1]])
+    sigma = grid.to(dtype=torch.float64).distance(torch.as_tensor(q)).numpy()
+    np.testing.assert_array_equal(sigma < 0, exact < 0)
+    err = np.abs(sigma - exact)
+    assert err.max() < 0.5 * grid.voxel_size and np.median(err) < 1e-6, (err.max(), np.median(err))
+
+
+def test_sdf_of_two_disjoint_spheres_and_random_flips():
+    r = 0.05
+    a = trimesh.creation.icosphere(subdivisions=3, radius=r)
+    b = a.copy()
+    a.apply_translation((-0.1, 0, 0))
+    b.apply_translation((0.1, 0.02, 0))
+    faces = np.concatenate([a.faces, b.faces + len(a.vertices)])
+    rng = np.random.default_rng(2)
+    flip = rng.random(len(faces)) < 0.3  # 30 % of the triangles flipped, and all of sphere b inverted
+    flip[len(a.faces):] = ~flip[len(a.faces):]
+    faces[flip] = faces[flip][:, ::-1]
+    mesh = trimesh.Trimesh(np.concatenate([a.vertices, b.vertices]), faces, process=False)
+    grid = SDFGrid.from_mesh(mesh, resolution=48, cache=False)
+    q = rng.uniform([-0.17, -0.07, -0.07], [0.17, 0.09, 0.07], (5000, 3))
+    ca, cb = np.array([-0.1, 0, 0]), np.array([0.1, 0.02, 0])
+    exact = np.minimum(np.linalg.norm(q - ca, axis=1), np.linalg.norm(q - cb, axis=1)) - r
+    sigma = grid.to(dtype=torch.float64).distance(torch.as_tensor(q)).numpy()
+    facet = 1.5e-4  # icosphere(3) lies within this of the true sphere at r = 5 cm
+    band = np.abs(exact) > grid.voxel_size
+    assert (exact[band] < 0).sum() > 200
+    np.testing.assert_array_equal(sigma[band] < 0, exact[band] < 0)
+    assert np.abs(sigma - exact)[np.abs(exact) < 0.02].max() < 0.5 * grid.voxel_size + facet
+
+
+def test_orient_faces_and_resolution_bound():
+    from ams_torch.geometry.sdf import MAX_RESOLUTION, orient_faces
+
+    ico = trimesh.creation.icosphere(subdivisions=2)
+    faces = np.asarray(ico.faces).copy()
+    flip = np.random.default_rng(4).random(len(faces)) < 0.5
+    faces[flip] = faces[flip][:, ::-1]
+    np.testing.assert_array_equal(orient_faces(ico.vertices, faces), ico.faces)
+    # a seam of duplicated vertices does not cut the part: split every vertex per face
+    soup_v = np.asarray(ico.vertices)[faces].reshape(-1, 3)
+    soup_f = np.arange(len(soup_v)).reshape(-1, 3)
+    np.testing.assert_array_equal(orient_faces(soup_v, soup_f), np.where(flip[:, None], soup_f[:, ::-1], soup_f))
+    with pytest.raises(ValueError, match=rf"resolution must be in \[4, {MAX_RESOLUTION}\]; got 600"):
+        SDFGrid.from_mesh(ico, resolution=600, cache=False)
+    with pytest.raises(ValueError, match=r"face indices must lie in \[0, 162\); got \[0, 999\]"):
+        SDFGrid.from_mesh(trimesh.Trimesh(ico.vertices, np.array([[0, 1, 999]]), process=False), cache=False)
