@@ -1,18 +1,25 @@
-"""The ``ams-torch`` command line: simulate a scene, render a saved sequence, report the setup.
+"""The ``ams-torch`` command line: simulate a scene, render a sequence, generate and validate datasets.
 
-    ams-torch simulate SCENE.toml [--frames F] [--scale s] [--device cpu|cuda] [--dtype float32|float64]
-                                  [--out DIR] [--no-video]
+    ams-torch [--debug] simulate SCENE.toml [--frames F] [--scale s] [--device cpu|cuda|cuda:N]
+                                  [--dtype float32|float64] [--out DIR] [--no-video]
         → DIR/sequence.h5 (dataset ``positions`` (F, S, N, 3) float32 m, world frame;
           ``rotations`` (F, 3, 3), ``translations`` (F, 3) m head poses; ``rest_positions``
           (S, N, 3); ``collider_rotations``/``collider_translations`` (F, C, 3, 3)/(F, C, 3) when
           the scene has [[colliders]]; attrs ``scene``, ``params``, ``ms_per_frame`` (JSON), ``dt`` s) and
           DIR/final.npz (the last frame: positions, velocities, rest_positions, head pose),
           DIR/final.png (a picture of it) and DIR/video.mp4; prints ms/frame per stage.
-    ams-torch render FILE.h5 [--out video.mp4|frame.png] [--view front|side|back] [--every k]
-    ams-torch generate RECIPE.toml --out DIR [--shard i/n | --shards n] [--backend local|ray]
-        → DIR/<name>-shard-<i>-of-<n>.h5 (layout: docs/dataset_format.md); resumes a killed run.
-    ams-torch validate DIR|FILE   (exit status 0 only when every file is sound)
+    ams-torch render FILE.h5|DATASET_DIR [--sequence K] [--out video.mp4|frame.png] [--view front|side|back]
+                                  [--every k]
+    ams-torch generate RECIPE.toml --out DIR [--shard i/n | --shards n] [--backend local|ray] [--wait]
+        → DIR/<name>-shard-<i>-of-<n>.h5 (shards numbered from 0; layout: docs/dataset_format.md);
+          resumes a killed run; one run per folder at a time (a lock file).
+    ams-torch validate DIR|FILE [--allow-partial]
+        exit 0: complete and sound; 1: problems found (each listed); 2: could not run.
     ams-torch info
+
+Expected failures (bad input, a bad file, a simulation that diverged, a busy output folder)
+print one line ``error: <problem>`` on stderr and exit with status 2; ``--debug`` (before the
+command) shows the traceback instead.
 """
 from __future__ import annotations
 
@@ -66,19 +73,34 @@ def write_final(path: str, result: dict, rest: np.ndarray) -> str:
     return path
 
 
-def read_sequence(path: str) -> dict:
-    """Read a sequence written by :func:`write_sequence`: positions (F, S, N, 3), rotations,
-    translations, rest_positions (and collider_rotations (F, C, 3, 3), collider_translations
-    (F, C, 3) when the scene has colliders) and the parsed ``scene``/``params``/``ms_per_frame``, ``dt``."""
+def _open_h5(path: str, what: str):
+    """Open an HDF5 file for reading; a ValueError naming it when it is missing or unreadable."""
     import h5py
 
     if not os.path.isfile(path):
-        raise FileNotFoundError(f"no such sequence file {path!r}")
-    with h5py.File(path, "r") as f:
+        raise FileNotFoundError(f"no such {what} {path!r}")
+    try:
+        return h5py.File(path, "r")
+    except (OSError, ValueError) as err:
+        raise ValueError(f"{path}: cannot be opened as HDF5 (truncated or corrupt file): {err}") from None
+
+
+def read_sequence(path: str) -> dict:
+    """Read a sequence written by :func:`write_sequence`: positions (F, S, N, 3), rotations,
+    translations, rest_positions (and collider_rotations (F, C, 3, 3), collider_translations
+    (F, C, 3) when the scene has colliders) and the parsed ``scene``/``params``/``ms_per_frame``, ``dt``.
+    A missing, truncated or corrupt file raises FileNotFoundError/ValueError naming it."""
+    with _open_h5(path, "sequence file") as f:
         if "positions" not in f:
             raise ValueError(f"{path}: no 'positions' dataset (not an ams-torch sequence)")
-        out = {k: f[k][()] for k in ("positions", "rotations", "translations", "rest_positions",
-                                     "collider_rotations", "collider_translations") if k in f}
+        out = {}
+        for k in ("positions", "rotations", "translations", "rest_positions", "collider_rotations",
+                  "collider_translations"):
+            if k in f:
+                try:
+                    out[k] = f[k][()]
+                except (OSError, ValueError, RuntimeError) as err:
+                    raise ValueError(f"{path}: dataset {k!r} is unreadable (corrupt data): {err}") from None
         for k in ("scene", "params", "ms_per_frame"):
             out[k] = json.loads(f.attrs[k]) if k in f.attrs else {}
         out["dt"] = float(f.attrs.get("dt", 1.0 / 60.0))
@@ -105,33 +127,60 @@ def _head_for_render(scene: dict):
 
 
 def _render(seq: dict, scene: dict, path: str, view: Optional[str] = None, every: Optional[int] = None,
-            progress: bool = False) -> str:
+            progress: bool = False, head=None) -> str:
+    """Render positions (F, S, N, 3) m of ``seq`` with the head (vertices, faces, radius) given or
+    drawn from ``scene``; colliders outlined from their stored world poses."""
     from ams_torch.apps.render import render_sequence
 
     r = scene.get("render", {})
-    v, f, radius = _head_for_render(scene)
+    v, f, radius = head if head is not None else _head_for_render(scene)
     fps = r.get("fps", 1.0 / seq["dt"])
     return render_sequence(seq["positions"], path, rotations=seq.get("rotations"),
                            translations=seq.get("translations"), fps=fps, every=every or r.get("every", 1),
                            progress=progress, colliders=scene.get("colliders", []),
                            collider_rotations=seq.get("collider_rotations"),
-                           collider_translations=seq.get("collider_translations"), head_vertices=v, head_faces=f, head_radius=radius,
-                           view=view or r.get("view", "front"), size=r.get("size", 4.0), title=scene.get("name", ""))
+                           collider_translations=seq.get("collider_translations"), head_vertices=v, head_faces=f,
+                           head_radius=radius, view=view or r.get("view", "front"), size=r.get("size", 4.0),
+                           title=scene.get("name", ""))
+
+
+def parse_device(text: Optional[str]):
+    """A torch.device from ``--device``: ``cpu``, ``cuda`` or ``cuda:N`` (N < the number of CUDA
+    devices); None: cuda when available, else cpu. A clear ValueError otherwise."""
+    import torch
+
+    if text is None:
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    t = str(text).strip().lower()
+    kind, _, num = t.partition(":")
+    if t == "cpu":
+        return torch.device("cpu")
+    if kind != "cuda" or (num and not num.isdigit()):
+        raise ValueError(f"--device {text!r} is not a device this library runs on; use cpu, cuda or cuda:N")
+    if torch.version.cuda is None:
+        raise ValueError(f"--device {text}: this torch build ({torch.__version__}) has no CUDA support; use "
+                         f"--device cpu, or install a CUDA build of torch")
+    count = torch.cuda.device_count()
+    if count == 0:
+        raise ValueError(f"--device {text}: torch was built with CUDA {torch.version.cuda} but no CUDA device is "
+                         f"visible (driver missing, or CUDA_VISIBLE_DEVICES hides them); use --device cpu")
+    if num and int(num) >= count:
+        raise ValueError(f"--device {text}: there {'is' if count == 1 else 'are'} {count} CUDA device(s) "
+                         f"(cuda:0{f' .. cuda:{count - 1}' if count > 1 else ''})")
+    return torch.device(t)
 
 
 def _cmd_simulate(args) -> int:
     import torch
 
+    from ams_torch.apps.datagen import nonfinite_inputs
     from ams_torch.apps.scene import build, load_scene, simulate
+    from ams_torch import SimulationDiverged
 
-    overrides = {}
-    if args.frames is not None:
-        overrides["frames"] = args.frames
-    if args.scale is not None:
-        overrides["scale"] = args.scale
+    device = parse_device(args.device)
+    overrides = {k: getattr(args, k) for k in ("frames", "scale") if getattr(args, k) is not None}
     scene = load_scene(args.scene, overrides)
     dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype]
-    device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     os.makedirs(args.out, exist_ok=True)
     t0 = time.perf_counter()
     run = build(scene, device=device, dtype=dtype)
@@ -140,10 +189,18 @@ def _cmd_simulate(args) -> int:
     print(f"scene {scene['name']}: {s} strands x {n} particles on {device} ({args.dtype}), "
           f"{scene['frames']} frames of {run.sim.params.dt * 1e3:.2f} ms, stages: {', '.join(stages) or 'none'}; "
           f"built in {time.perf_counter() - t0:.1f} s")
-    result = simulate(run, progress=not args.quiet)
+    try:
+        result = simulate(run, progress=not args.quiet)
+    except SimulationDiverged as err:
+        motions = [("[motion]", run.motion)] + [(f"[colliders[{i}].motion]", m) for i, m in enumerate(run.collider_motions)]
+        bad = nonfinite_inputs(run.rest, motions, scene["frames"], run.sim.params.dt, [run.wind], run.sim.params)
+        if bad:
+            raise ValueError(f"{args.scene}: the scene input is not finite: {bad}; the simulation stopped at frame "
+                             f"{err.frame}. This is not a stability problem (more substeps will not help): fix the "
+                             f"input") from None
+        raise
     if not np.isfinite(result["positions"]).all():
-        print("error: the simulation produced non-finite positions", file=sys.stderr)
-        return 1
+        raise ValueError(f"{args.scene}: the simulation produced non-finite positions")
     h5 = write_sequence(os.path.join(args.out, "sequence.h5"), result, scene, run.sim.params, run.rest)
     print("ms/frame: " + ", ".join(f"{k} {v:.1f}" for k, v in result["ms_per_frame"].items()))
     print(f"wrote {h5}")
@@ -158,10 +215,32 @@ def _cmd_simulate(args) -> int:
     return 0
 
 
+def _is_dataset(path: str) -> bool:
+    from ams_torch.apps.data import FORMAT
+
+    if os.path.isdir(path):
+        return True
+    with _open_h5(path, "file to render") as f:
+        return f.attrs.get("format") == FORMAT
+
+
 def _cmd_render(args) -> int:
-    seq = read_sequence(args.file)
-    out = args.out or os.path.join(os.path.dirname(os.path.abspath(args.file)), "video.mp4")
-    path = _render(seq, seq["scene"], out, view=args.view, every=args.every, progress=not args.quiet)
+    if _is_dataset(args.file):
+        from ams_torch.apps.data import read_dataset_sequence
+
+        seq = read_dataset_sequence(args.file, args.sequence)
+        head = seq["meshes"]["head"]
+        drawn = (head.get("vertices"), head.get("faces"), None)
+        base = args.file if os.path.isdir(args.file) else os.path.dirname(os.path.abspath(args.file))
+        out = args.out or os.path.join(base, f"seq_{seq['index']:06d}.mp4")
+        print(f"rendering sequence {seq['index']} of {seq['file']}")
+    else:
+        if args.sequence is not None:
+            raise ValueError(f"--sequence picks a sequence of a dataset; {args.file} is a simulate sequence file "
+                             f"(one sequence)")
+        seq, drawn = read_sequence(args.file), None
+        out = args.out or os.path.join(os.path.dirname(os.path.abspath(args.file)), "video.mp4")
+    path = _render(seq, seq["scene"], out, view=args.view, every=args.every, progress=not args.quiet, head=drawn)
     print(f"wrote {path}")
     return 0
 
@@ -198,34 +277,55 @@ def _cmd_info(args) -> int:
     return 0
 
 
+def _positive(name: str, v, integer: bool = True):
+    if v is not None and not v > 0:
+        raise ValueError(f"{name} must be a positive {'integer' if integer else 'number'}; got {v}")
+    return v
+
+
+def _generate_shards(args, recipe) -> tuple:
+    """(shards to generate or None for all, number of shards) from --shard/--shards, validated."""
+    from ams_torch.apps.datagen import parse_shard
+
+    if args.shards is not None and args.shards < 1:
+        raise ValueError(f"--shards must be an integer >= 1 (the number of shard files); got {args.shards}")
+    if args.shard is None:
+        return None, args.shards or 1
+    if args.backend == "ray":
+        raise ValueError("--shard selects one shard for the local backend; with --backend ray use --shards N "
+                         "(Ray runs every shard)")
+    i, n = parse_shard(args.shard)
+    if args.shards is not None and args.shards != n:
+        raise ValueError(f"--shard {args.shard} is shard {i} of {n}, but --shards says {args.shards}; give one "
+                         f"of them (or the same n in both)")
+    return [i], n
+
+
 def _cmd_generate(args) -> int:
-    from ams_torch.apps.datagen import generate, generate_ray, parse_shard
+    from ams_torch.apps.datagen import generate, generate_ray
     from ams_torch.apps.recipe import load_recipe
 
-    overrides = {"sequences": args.sequences} if args.sequences is not None else None
-    recipe = load_recipe(args.recipe, overrides)
+    for name in ("sequences", "threads"):
+        _positive(f"--{name}", getattr(args, name))
+    _positive("--cpus-per-task", args.cpus_per_task, integer=False)
+    device = None if args.device is None else str(parse_device(args.device))
+    recipe = load_recipe(args.recipe, {"sequences": args.sequences} if args.sequences is not None else None)
+    shards, n = _generate_shards(args, recipe)
     if args.threads:
         import torch
 
         torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
     print(f"recipe {recipe.name}: {recipe.num_sequences} sequences x {recipe.frames} frames in "
-          f"{recipe.num_groups} batch group(s) of up to {recipe.batch}; output {args.out}")
+          f"{recipe.num_groups} batch group(s) of up to {recipe.batch}; output {args.out}, "
+          f"{'shard ' + str(shards[0]) + ' of ' + str(n) + ' (0-based)' if shards else str(n) + ' shard(s)'}")
+    log = lambda s: print(s, flush=True)  # noqa: E731 - seen at once when stdout is a file
     if args.backend == "ray":
-        if args.shard:
-            print("error: --shard selects one shard for the local backend; with --backend ray use --shards N",
-                  file=sys.stderr)
-            return 2
-        paths = generate_ray(recipe, args.out, args.shards or 1, address=args.ray_address, device=args.device,
-                             cpus_per_task=args.cpus_per_task, progress=not args.quiet)
+        paths = generate_ray(recipe, args.out, n, address=args.ray_address, device=device,
+                             cpus_per_task=args.cpus_per_task, progress=not args.quiet, log=log, wait=args.wait)
     else:
-        if args.shard:
-            i, n = parse_shard(args.shard)
-            shards = [i]
-        else:
-            n = args.shards or 1
-            shards = None
-        paths = generate(recipe, args.out, shards=shards, num_shards=n, device=args.device, progress=not args.quiet)
+        paths = generate(recipe, args.out, shards=shards, num_shards=n, device=device, progress=not args.quiet,
+                         log=log, wait=args.wait)
     for p in paths:
         print(f"wrote {p}")
     print(f"done in {time.perf_counter() - t0:.1f} s")
@@ -235,69 +335,103 @@ def _cmd_generate(args) -> int:
 def _cmd_validate(args) -> int:
     from ams_torch.apps.data import validate
 
-    problems, notes = validate(args.path, progress=not args.quiet)
-    bad = 0
-    for path, found in problems.items():
+    report = validate(args.path, progress=not args.quiet, allow_partial=args.allow_partial)
+    for path, found in report.files.items():
         if found:
-            bad += 1
             print(f"FAIL {path}")
             for p in found:
                 print(f"  - {p}")
         elif not args.quiet:
             print(f"ok   {path}")
-    errors = [n for n in notes if n.startswith("error:")]
-    for n in notes:
-        print(n)
-    print(f"{len(problems) - bad} of {len(problems)} file(s) sound")
-    return 0 if bad == 0 and not errors else 1
+    for p in report.problems:
+        print(f"problem: {p}")
+    for n in report.notes:
+        print(f"note: {n}")
+    bad = sum(1 for found in report.files.values() if found)
+    count = sum(len(f) for f in report.files.values()) + len(report.problems)
+    files = f"{len(report.files) - bad} of {len(report.files)} file(s) sound"
+    if report.ok:
+        what = "partial dataset sound so far" if args.allow_partial and report.notes else "dataset complete and sound"
+        print(f"{what}: {files}")
+        return 0
+    print(f"{count} problem(s) found: {files}")
+    return 1
 
 
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="ams-torch", description="Dense hair simulation with the AMS model.")
+    ap.add_argument("--debug", action="store_true", help="show the traceback of a failure (default: one line)")
     sub = ap.add_subparsers(dest="command", required=True)
     sp = sub.add_parser("simulate", help="simulate a scene file (TOML)")
     sp.add_argument("scene")
     sp.add_argument("--frames", type=int)
     sp.add_argument("--scale", type=float, help="multiply the groom's strand count")
-    sp.add_argument("--device", help="cpu or cuda (default: cuda when available)")
+    sp.add_argument("--device", help="cpu, cuda or cuda:N (default: cuda when available)")
     sp.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     sp.add_argument("--out", default="out")
     sp.add_argument("--no-video", action="store_true")
     sp.add_argument("--quiet", action="store_true", help="no progress bars")
     sp.set_defaults(fn=_cmd_simulate)
-    rp = sub.add_parser("render", help="render a sequence.h5 to MP4 (or PNG)")
-    rp.add_argument("file")
-    rp.add_argument("--out")
+    rp = sub.add_parser("render", help="render a sequence.h5, or a sequence of a dataset, to MP4 (or PNG)")
+    rp.add_argument("file", help="a sequence.h5 of `simulate`, or a dataset folder/file of `generate`")
+    rp.add_argument("--sequence", type=int, help="dataset only: the sequence index to render (default: the first)")
+    rp.add_argument("--out", help="video.mp4, or a .png for the last frame")
     rp.add_argument("--view", choices=("front", "side", "back"))
     rp.add_argument("--every", type=int)
     rp.add_argument("--quiet", action="store_true")
     rp.set_defaults(fn=_cmd_render)
     gp = sub.add_parser("generate", help="simulate a dataset recipe (TOML) into sharded HDF5 files")
     gp.add_argument("recipe")
-    gp.add_argument("--out", required=True, help="output folder (one HDF5 file per shard)")
-    gp.add_argument("--shard", help="i/n: generate only shard i of n (local backend)")
-    gp.add_argument("--shards", type=int, help="number of shards (default 1; with --backend ray, one task each)")
+    gp.add_argument("--out", required=True, help="output folder (one HDF5 file per shard; one dataset per folder)")
+    gp.add_argument("--shard", metavar="I/N", help="generate only shard I of N, numbered from 0: 0 <= I < N "
+                    "(0/4 is the first of 4, 3/4 the last; file <name>-shard-0000I-of-0000N.h5); local backend")
+    gp.add_argument("--shards", type=int, metavar="N", help="number of shards (default 1); without --shard, "
+                    "generate all N")
     gp.add_argument("--sequences", type=int, help="override the recipe's number of sequences")
-    gp.add_argument("--backend", choices=("local", "ray"), default="local")
+    gp.add_argument("--backend", choices=("local", "ray"), default="local",
+                    help="local: this process; ray: one Ray task per batch group")
+    gp.add_argument("--wait", action="store_true", help="if another generate run holds --out, wait for it to "
+                    "finish instead of failing")
     gp.add_argument("--ray-address", help="join this Ray cluster (default: start a private one on 127.0.0.1)")
-    gp.add_argument("--cpus-per-task", type=float, default=1.0, help="Ray CPUs per shard task")
-    gp.add_argument("--device", help="cpu or cuda (default cpu; Ray tasks take a GPU each when there are GPUs)")
+    gp.add_argument("--cpus-per-task", type=float, default=1.0, help="Ray CPUs per batch-group task")
+    gp.add_argument("--device", help="cpu, cuda or cuda:N (default cpu; Ray tasks take a GPU each when there are GPUs)")
     gp.add_argument("--threads", type=int, help="torch CPU threads")
     gp.add_argument("--quiet", action="store_true", help="no progress bars")
     gp.set_defaults(fn=_cmd_generate)
-    vp = sub.add_parser("validate", help="check dataset files (structure, checksums, NaN, frame counts)")
+    vp = sub.add_parser("validate", help="check a dataset: every file sound and together complete "
+                        "(exit 0: complete and sound, 1: problems found, 2: could not run)")
     vp.add_argument("path", help="a dataset folder or file")
+    vp.add_argument("--allow-partial", action="store_true", help="a run in progress: missing or unfinished shards "
+                    "are notes, not problems")
     vp.add_argument("--quiet", action="store_true")
     vp.set_defaults(fn=_cmd_validate)
     ip = sub.add_parser("info", help="versions, devices, native solver status")
     ip.set_defaults(fn=_cmd_info)
-    args = ap.parse_args(argv)
-    from ams_torch.apps.scene import SceneError
+    return ap
 
+
+def _expected() -> tuple:
+    """The exception classes that are the user's problem (bad input, files, divergence), not bugs."""
+    from ams_torch import SimulationDiverged
+
+    return (ValueError, OSError, ImportError, SimulationDiverged)
+
+
+def main(argv=None) -> int:
+    """Run the command line; returns the exit status (0 success, 1 problems found by validate,
+    2 an expected failure, printed as one ``error:`` line unless ``--debug``, 130 interrupted)."""
+    args = _parser().parse_args(argv)
     try:
         return args.fn(args)
-    except (SceneError, FileNotFoundError, ValueError) as err:
-        print(f"error: {err}", file=sys.stderr)
+    except KeyboardInterrupt:
+        if args.debug:
+            raise
+        print("error: interrupted", file=sys.stderr)
+        return 130
+    except _expected() as err:
+        if args.debug:
+            raise
+        print(f"error: {' '.join(str(err).split()) or type(err).__name__}", file=sys.stderr)
         return 2
 
 

@@ -31,16 +31,23 @@ sequences to simulate and what to store. Top level::
     [store]     positions = true, velocities = false, guides = 0 (G, farthest-point guide
                 strands stored apart), poses = true, precision = "float32" | "float16",
                 compression = "gzip" | "lzf" | "none", compression_level = 4 (gzip)
+    [split]     train = 0.8, valid = 0.1, test = 0.1: shares of the batch groups in each split
+                (non-negative, summing to 1). Whole batch groups go to one split, so no groom
+                is in two splits; the assignment is a permutation drawn from the recipe's seed.
 
 A sampler is a one-key table: ``{ uniform = [lo, hi] }``, ``{ log_uniform = [lo, hi] }``,
-``{ randint = [lo, hi] }`` (inclusive), ``{ choice = [a, b, ...] }``. Vectors may hold samplers
-(``direction = [1, 0, { uniform = [-0.5, 0.5] }]``).
+``{ randint = [lo, hi] }`` (inclusive), ``{ choice = [a, b, ...] }`` (options are plain values,
+not samplers). Vectors may hold samplers (``direction = [1, 0, { uniform = [-0.5, 0.5] }]``).
+Every value a sampler can produce is validated when the recipe is read: each choice option and
+both ends of each range are put, one at a time, into a scene that is then validated, so a typo
+in the third option fails at once (naming the key and the value), not after hours of generation.
 
 Seeding. Sequence i's random draws come from ``SeedSequence([h, seed], spawn_key=(1, i))`` and
 its group's from ``spawn_key=(0, g)`` with g = i // batch, where h is a hash of the recipe's
-content (everything except ``name``, ``description``, ``sequences`` and ``[store]``). So a
+content (everything except ``name``, ``description``, ``sequences``, ``[store]`` and ``[split]``). So a
 sequence depends on (recipe, index) alone: any shard on any machine draws the same sequence,
-and raising ``sequences`` keeps the existing ones.
+and raising ``sequences`` keeps the existing ones. ``Recipe.digest`` hashes the whole recipe
+(sizes, storage and split included): files of one dataset must share it.
 
 Usage::
 
@@ -61,17 +68,17 @@ from typing import Any, Dict, List, Optional
 import numpy as np
 
 from ams_torch.apps.scene import SceneError, parse_scene, read_toml
+from ams_torch.apps.scene.schema import ABSENT, boolean, check_table, integer, is_number, number, one_of, string
 
-__all__ = ["RecipeError", "Recipe", "load_recipe", "parse_recipe", "SAMPLERS", "STORE_DEFAULTS"]
+__all__ = ["RecipeError", "Recipe", "load_recipe", "parse_recipe", "SAMPLERS", "STORE_DEFAULTS", "SPLITS",
+           "SPLIT_DEFAULTS"]
 
 SAMPLERS = ("uniform", "log_uniform", "randint", "choice")
-_TOP = {"name", "description", "sequences", "frames", "batch", "seed", "dt", "substeps", "dtype", "head", "groom",
-        "params", "stages", "hair_hair", "colliders", "motion", "wind", "store"}
-_NOT_HASHED = ("name", "description", "sequences", "store")
-STORE_DEFAULTS = {"positions": True, "velocities": False, "guides": 0, "poses": True, "precision": "float32",
-                  "compression": "gzip", "compression_level": 4}
+_NOT_HASHED = ("name", "description", "sequences", "store", "split")
+SPLITS = ("train", "valid", "test")
+SPLIT_DEFAULTS = {"train": 0.8, "valid": 0.1, "test": 0.1}
 _RANDOM_MOTION = {"keys": 4, "duration": None, "max_angle": 0.6, "max_translation": 0.05}
-_GROUP, _SEQUENCE = 0, 1
+_GROUP, _SEQUENCE, _SPLIT = 0, 1, 2
 
 
 class RecipeError(SceneError):
@@ -93,9 +100,11 @@ def _check_samplers(v, where: str, key: str) -> None:
         if kind == "choice":
             if not isinstance(arg, list) or not arg:
                 _fail(where, f"{key}: choice needs a non-empty list; got {arg!r}")
+            for j, a in enumerate(arg):
+                if _has_sampler(a):
+                    _fail(where, f"{key}: choice option {j + 1} holds a sampler; options are plain values")
             return
-        if not (isinstance(arg, list) and len(arg) == 2 and all(
-                isinstance(a, (int, float)) and not isinstance(a, bool) and math.isfinite(a) for a in arg)):
+        if not (isinstance(arg, list) and len(arg) == 2 and all(is_number(a) for a in arg)):
             _fail(where, f"{key}: {kind} needs [low, high] numbers; got {arg!r}")
         lo, hi = arg
         if lo > hi:
@@ -144,11 +153,14 @@ def _random_keyframes(args: dict, frames: int, dt: float, rng: np.random.Generat
         _fail(where, f"[motion] (random): unknown argument(s) {unknown}; allowed: {sorted(_RANDOM_MOTION)}")
     a = {**_RANDOM_MOTION, **args}
     keys = a["keys"]
-    if isinstance(keys, bool) or not isinstance(keys, int) or keys < 1:
-        _fail(where, f"[motion] (random): keys must be a positive integer; got {keys!r}")
+    if isinstance(keys, bool) or not isinstance(keys, int) or not 1 <= keys <= 10_000:
+        _fail(where, f"[motion] (random): keys must be an integer in [1, 10000]; got {keys!r}")
+    if a["duration"] is not None and not (is_number(a["duration"]) and a["duration"] > 0):
+        _fail(where, f"[motion] (random): duration must be a positive number (s); got {a['duration']!r}")
+    for k in ("max_angle", "max_translation"):
+        if not (is_number(a[k]) and a[k] >= 0):
+            _fail(where, f"[motion] (random): {k} must be a finite number >= 0; got {a[k]!r}")
     duration = float(a["duration"]) if a["duration"] is not None else frames * dt
-    if not duration > 0:
-        _fail(where, f"[motion] (random): duration must be positive (s); got {a['duration']!r}")
     times = np.linspace(0.0, duration, keys + 1)
     axes = rng.normal(size=(keys, 3))
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
@@ -209,6 +221,42 @@ class Recipe:
     def dtype_name(self) -> str:
         return self.raw.get("dtype", "float32")
 
+    @property
+    def digest(self) -> str:
+        """SHA-256 (hex) of the whole recipe as validated (sizes, storage and split included):
+        the identity of a dataset; every file of one dataset carries the same digest."""
+        return hashlib.sha256(_canonical(self.raw).encode()).hexdigest()
+
+    @property
+    def split_ratios(self) -> Dict[str, float]:
+        return {**SPLIT_DEFAULTS, **self.raw.get("split", {})}
+
+    def group_splits(self) -> List[str]:
+        """The split (``"train"``, ``"valid"`` or ``"test"``) of every batch group: a permutation of
+        the groups drawn from the recipe's seed, cut into runs whose lengths are the ratios times
+        the number of groups, rounded by largest remainder (so they sum to the group count)."""
+        cached = self.__dict__.get("_group_splits")
+        if cached is None:
+            n = self.num_groups
+            exact = [self.split_ratios[k] * n for k in SPLITS]
+            counts = [int(math.floor(e)) for e in exact]
+            by_rest = sorted(range(len(SPLITS)), key=lambda j: (-(exact[j] - counts[j]), j))
+            for j in by_rest[:n - sum(counts)]:
+                counts[j] += 1
+            order = self.rng(_SPLIT, 0).permutation(n)
+            cached = [""] * n
+            pos = 0
+            for name, c in zip(SPLITS, counts):
+                for g in order[pos:pos + c]:
+                    cached[int(g)] = name
+                pos += c
+            self.__dict__["_group_splits"] = cached
+        return list(cached)
+
+    def sequence_split(self, i: int) -> str:
+        """The split of sequence i (that of its batch group)."""
+        return self.group_splits()[i // self.batch]
+
     def group_sequences(self, g: int) -> List[int]:
         """Indices of the sequences of batch group g."""
         if not 0 <= g < self.num_groups:
@@ -264,40 +312,49 @@ class Recipe:
         return {"index": i, "group": i // self.batch, "seed": self.sequence_seed(i), "motion": motion, "wind": wind}
 
     def _draw_motion(self, rng: np.random.Generator, where: str) -> dict:
-        from ams_torch.apps.motion import MOTIONS
-
         m = self.raw.get("motion")
         if m is None:
             return {"type": "static"}
-        types = set(MOTIONS) | {"random", "recorded"}
         kind = sample(m.get("type", "static"), rng)
-        if kind not in types:
-            _fail(where, f"[motion].type must be one of {sorted(types)}; got {kind!r}")
-        common = {k: v for k, v in m.items() if k != "type" and k not in types}
-        args = sample(common, rng)
+        if not isinstance(kind, str) or kind not in _motion_types():
+            _fail(where, f"[motion].type must be one of {sorted(_motion_types())}; got {kind!r}")
+        args = sample(_motion_common(m), rng)
         args.update(sample(m.get(kind, {}), rng))
+        return self._concrete_motion(kind, args, rng, where)
+
+    def _concrete_motion(self, kind: str, args: dict, rng: np.random.Generator, where: str) -> dict:
         if kind == "random":
             return _random_keyframes(args, self.frames, self.frame_dt, rng, where)
-        if kind == "recorded" and "path" in args and not os.path.isabs(args["path"]):
+        if kind == "recorded" and isinstance(args.get("path"), str) and not os.path.isabs(args["path"]):
             args["path"] = os.path.join(self.base, args["path"])
         return {"type": kind, **args}
+
+    def make_scene(self, groom: dict, params: dict, motion: dict, wind: Optional[dict], name: str, where: str) -> dict:
+        """The validated scene of concrete ``groom``/``params``/``motion``/``wind`` tables with the
+        recipe's fixed sections; a :class:`RecipeError` (naming the key) when it is invalid."""
+        scene = {"name": name, "frames": self.frames, "groom": groom, "params": params, "motion": motion}
+        for k in ("dt", "substeps", "head", "stages", "hair_hair", "colliders"):
+            if k in self.raw:
+                scene[k] = copy.deepcopy(self.raw[k])
+        if wind is not None:
+            scene["wind"] = wind
+        try:
+            scene = parse_scene(scene, where=where, base=self.base)
+        except SceneError as err:
+            raise RecipeError(str(err)) from None
+        guides = self.store["guides"]
+        strands = max(1, int(round(scene["groom"].get("strands", 1000) * float(scene["scale"]))))
+        if guides > strands:
+            _fail(where, f"[store].guides = {guides} exceeds the groom's {strands} strands")
+        return scene
 
     def group_scene(self, g: int) -> dict:
         """The validated scene (see :func:`ams_torch.apps.scene.parse_scene`) that simulates batch group g;
         its ``motion`` is the group's first sequence's (the others differ only in motion and wind)."""
         spec = self.group_spec(g)
         first = self.sequence_spec(self.group_sequences(g)[0])
-        scene = {"name": f"{self.name}/group{g}", "frames": self.frames, "groom": spec["groom"],
-                 "params": spec["params"], "motion": first["motion"]}
-        for k in ("dt", "substeps", "head", "stages", "hair_hair", "colliders"):
-            if k in self.raw:
-                scene[k] = copy.deepcopy(self.raw[k])
-        if first["wind"] is not None:
-            scene["wind"] = first["wind"]
-        try:
-            return parse_scene(scene, where=f"{self.where} (group {g})", base=self.base)
-        except SceneError as err:
-            raise RecipeError(str(err)) from None
+        return self.make_scene(spec["groom"], spec["params"], first["motion"], first["wind"], f"{self.name}/group{g}",
+                               f"{self.where} (group {g})")
 
     def to_json(self) -> str:
         return _canonical(self.raw)
@@ -310,34 +367,51 @@ def load_recipe(path: str, overrides: Optional[dict] = None) -> Recipe:
     return parse_recipe(raw, where=path, base=os.path.dirname(os.path.abspath(path)))
 
 
-def _int(raw: dict, key: str, where: str, default=None, minimum: int = 1) -> int:
-    v = raw.get(key, default)
-    if isinstance(v, bool) or not isinstance(v, int) or v < minimum:
-        _fail(where, f"{key} must be an integer >= {minimum}; got {v!r}")
+def _motion_types() -> set:
+    from ams_torch.apps.motion import MOTIONS
+
+    return set(MOTIONS) | {"random", "recorded"}
+
+
+def _motion_common(m: dict) -> dict:
+    """Arguments of ``[motion]`` common to every type (all but ``type`` and the per-type tables)."""
+    return {k: v for k, v in m.items() if k != "type" and k not in _motion_types()}
+
+
+def _any(v, key, ctx):
     return v
 
 
-def parse_recipe(raw: dict, where: str = "recipe", base: str = ".") -> Recipe:
-    """Validate a recipe dict (as read from TOML). Raises :class:`RecipeError` naming the key.
-    Checks the structure and the samplers, then draws group 0 and sequence 0 and validates the
-    scene they make, so most mistakes surface before any simulation."""
-    raw = copy.deepcopy(raw)
-    if not isinstance(raw, dict):
-        _fail(where, "a recipe must be a table")
-    unknown = sorted(set(raw) - _TOP)
-    if unknown:
-        _fail(where, f"unknown key(s) {unknown} at the top level; allowed: {sorted(_TOP)}")
-    raw.setdefault("name", "dataset")
-    if not isinstance(raw["name"], str) or not raw["name"] or any(c in raw["name"] for c in "/\\"):
-        _fail(where, f"name must be a non-empty string without slashes; got {raw['name']!r}")
-    _int(raw, "sequences", where)
-    _int(raw, "frames", where)
-    _int(raw, "batch", where, default=1)
-    _int(raw, "seed", where, default=0, minimum=0)
-    if raw.get("dtype", "float32") not in ("float32", "float64"):
-        _fail(where, f"dtype must be 'float32' or 'float64'; got {raw.get('dtype')!r}")
-    for key in ("head", "stages", "hair_hair", "dt", "substeps", "colliders", "frames", "batch", "seed",
-                "sequences", "dtype"):
+def _name(v, key, ctx):
+    if not isinstance(v, str) or not v or any(c in v for c in "/\\"):
+        ctx.fail(f"name must be a non-empty string without slashes; got {v!r}")
+    return v
+
+
+def _table(section: str, spec: dict):
+    return lambda v, key, ctx: check_table(v, spec, section, ctx.where, ctx.base, RecipeError)
+
+
+STORE = {"positions": (boolean, True), "velocities": (boolean, False), "guides": (integer(0, 2**31 - 1), 0),
+         "poses": (boolean, True), "precision": (one_of("float32", "float16"), "float32"),
+         "compression": (one_of("gzip", "lzf", "none"), "gzip"), "compression_level": (integer(0, 9), 4)}
+STORE_DEFAULTS = {k: default for k, (_, default) in STORE.items()}
+SPLIT = {k: (number(0, 1), ABSENT) for k in SPLITS}
+TOP = {"name": (_name, ABSENT), "description": (string, ABSENT), "sequences": (integer(1, 2**40), ABSENT),
+       "frames": (integer(1, 2**31 - 1), ABSENT), "batch": (integer(1, 2**31 - 1), ABSENT),
+       "seed": (integer(0, 2**63 - 1), ABSENT), "dtype": (one_of("float32", "float64"), ABSENT),
+       "store": (_table("store", STORE), ABSENT), "split": (_table("split", SPLIT), ABSENT),
+       **{k: (_any, ABSENT) for k in ("dt", "substeps", "head", "groom", "params", "stages", "hair_hair", "colliders",
+                                      "motion", "wind")}}
+_FIXED = ("head", "stages", "hair_hair", "dt", "substeps", "colliders")
+
+
+def _check_top(raw: dict, where: str, base: str) -> None:
+    check_table(raw, TOP, "top level", where, base, RecipeError)
+    for key in ("sequences", "frames"):
+        if key not in raw:
+            _fail(where, f"{key} must be an integer >= 1; got nothing (the key is required)")
+    for key in _FIXED:
         if key in raw and _has_sampler(raw[key]):
             _fail(where, f"{key} is fixed for a whole dataset; samplers are allowed in [groom], [params], "
                          f"[motion] and [wind]")
@@ -346,35 +420,38 @@ def parse_recipe(raw: dict, where: str = "recipe", base: str = ".") -> Recipe:
             if not isinstance(raw[key], dict):
                 _fail(where, f"[{key}] must be a table; got {raw[key]!r}")
             _check_samplers(raw[key], where, f"[{key}]")
-    if "wind" in raw:
-        p = raw["wind"].get("probability", 1.0)
-        if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0 <= p <= 1:
-            _fail(where, f"[wind].probability must be a number in [0, 1]; got {p!r}")
-    store = raw.get("store", {})
-    if not isinstance(store, dict):
-        _fail(where, "[store] must be a table")
-    unknown = sorted(set(store) - set(STORE_DEFAULTS))
-    if unknown:
-        _fail(where, f"unknown key(s) {unknown} in [store]; allowed: {sorted(STORE_DEFAULTS)}")
-    st = {**STORE_DEFAULTS, **store}
-    for k in ("positions", "velocities", "poses"):
-        if not isinstance(st[k], bool):
-            _fail(where, f"[store].{k} must be true or false; got {st[k]!r}")
-    if isinstance(st["guides"], bool) or not isinstance(st["guides"], int) or st["guides"] < 0:
-        _fail(where, f"[store].guides must be an integer >= 0; got {st['guides']!r}")
-    if st["precision"] not in ("float32", "float16"):
-        _fail(where, f"[store].precision must be 'float32' or 'float16'; got {st['precision']!r}")
-    if st["compression"] not in ("gzip", "lzf", "none"):
-        _fail(where, f"[store].compression must be 'gzip', 'lzf' or 'none'; got {st['compression']!r}")
-    lvl = st["compression_level"]
-    if isinstance(lvl, bool) or not isinstance(lvl, int) or not 0 <= lvl <= 9:
-        _fail(where, f"[store].compression_level must be an integer in [0, 9]; got {lvl!r}")
+    for kind in _motion_types() & set(raw.get("motion", {})):
+        if not isinstance(raw["motion"][kind], dict):
+            _fail(where, f"[motion.{kind}] must be a table of that motion's arguments; got {raw['motion'][kind]!r}")
+    p = raw.get("wind", {}).get("probability", 1.0)
+    if not (is_number(p) and 0 <= p <= 1):
+        _fail(where, f"[wind].probability must be a number in [0, 1]; got {p!r}")
+    st = {**STORE_DEFAULTS, **raw.get("store", {})}
     if not (st["positions"] or st["guides"]):
         _fail(where, "[store] keeps nothing: set positions = true or guides > 0")
+    if "split" in raw:
+        raw["split"] = ratios = {k: float(raw["split"].get(k, 0.0)) for k in SPLITS}  # a share left out is 0
+        total = sum(ratios.values())
+        if abs(total - 1.0) > 1e-6:
+            _fail(where, f"[split] shares must sum to 1; got {' + '.join(f'{k} {v:g}' for k, v in ratios.items())} "
+                         f"= {total:g}")
+
+
+def parse_recipe(raw: dict, where: str = "recipe", base: str = ".") -> Recipe:
+    """Validate a recipe dict (as read from TOML). Raises :class:`RecipeError` naming the key.
+    Checks the structure and the samplers, validates the scene made by every value each
+    sampler can produce (:func:`check_sampler_values`), then draws group 0 and sequence 0 and
+    validates what they make, so mistakes surface before any simulation."""
+    if not isinstance(raw, dict):
+        _fail(where, "a recipe must be a table")
+    raw = copy.deepcopy(raw)
+    raw.setdefault("name", "dataset")
+    _check_top(raw, where, base)
     content = {k: v for k, v in raw.items() if k not in _NOT_HASHED}
     digest = hashlib.sha256(_canonical(content).encode()).hexdigest()
     recipe = Recipe(raw=raw, where=where, base=base, hash=digest)
-    scene = recipe.group_scene(0)
+    check_sampler_values(recipe)
+    recipe.group_scene(0)
     from ams_torch.apps.motion import make_motion
     from ams_torch.stages.wind import Wind
 
@@ -385,10 +462,6 @@ def parse_recipe(raw: dict, where: str = "recipe", base: str = ".") -> Recipe:
             Wind(**spec["wind"])
     except (TypeError, ValueError, FileNotFoundError) as err:
         _fail(where, f"sequence 0: {err}")
-    g = st["guides"]
-    strands = max(1, int(round(scene["groom"].get("strands", 1000) * float(scene["scale"]))))
-    if g > strands:
-        _fail(where, f"[store].guides = {g} exceeds the groom's {strands} strands")
     return recipe
 
 
@@ -400,3 +473,114 @@ def _has_sampler(v) -> bool:
     if isinstance(v, list):
         return any(_has_sampler(x) for x in v)
     return False
+
+
+# -- every value a sampler can produce -------------------------------------------------------
+def _sites(v, path: tuple = ()):
+    """(path, sampler) of every sampler inside v; a path is a tuple of keys and list indices."""
+    if is_sampler(v):
+        yield path, v
+    elif isinstance(v, dict):
+        for k, x in v.items():
+            yield from _sites(x, path + (k,))
+    elif isinstance(v, list):
+        for j, x in enumerate(v):
+            yield from _sites(x, path + (j,))
+
+
+def _options(sampler: dict) -> List[tuple]:
+    """(value, description) of each value a sampler can produce that decides validity: every
+    choice option, both ends of a range (integers for randint)."""
+    kind, arg = next(iter(sampler.items()))
+    if kind == "choice":
+        return [(a, f"choice option {j + 1} of {len(arg)}") for j, a in enumerate(arg)]
+    conv = int if kind == "randint" else float
+    return [(conv(arg[0]), f"{kind} low end"), (conv(arg[1]), f"{kind} high end")]
+
+
+def _first(v):
+    """v with every sampler replaced by its first option."""
+    if is_sampler(v):
+        return copy.deepcopy(_options(v)[0][0])
+    if isinstance(v, dict):
+        return {k: _first(x) for k, x in v.items()}
+    if isinstance(v, list):
+        return [_first(x) for x in v]
+    return v
+
+
+def _put(v, path: tuple, value):
+    out = copy.deepcopy(v)
+    node = out
+    for p in path[:-1]:
+        node = node[p]
+    node[path[-1]] = copy.deepcopy(value)
+    return out
+
+
+def _key(section: str, path: tuple) -> str:
+    return f"[{section}]" + "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in path)
+
+
+def _variants(recipe: Recipe) -> list:
+    """(site, label, overrides) for every value each sampler can produce; a site is one sampler
+    (its first variant is its first option), overrides replace the base draw (``kind`` and
+    ``margs`` the motion, ``g``/``p``/``w`` the groom/params/wind tables)."""
+    raw = recipe.raw
+    m = raw.get("motion", {"type": "static"})
+    types = m.get("type", "static")
+    kinds = _options(types) if is_sampler(types) else [(types, "")]
+    kinds += [(k, f"[motion.{k}] table") for k in sorted(_motion_types() & set(m)) if k not in [x for x, _ in kinds]]
+    out = []
+    for kind, how in kinds:
+        label = f"[motion].type = {kind!r}{f' ({how})' if how else ''}"
+        if not isinstance(kind, str) or kind not in _motion_types():
+            _fail(recipe.where, f"{label}: must be one of {sorted(_motion_types())}")
+        args = {**_motion_common(m), **m.get(kind, {})}
+        out.append(("type", label, {"kind": kind, "margs": _first(args)}))
+        for path, smp in _sites(args):
+            sec = "motion" if path[0] in _motion_common(m) else f"motion.{kind}"
+            out += [((kind,) + path, f"{_key(sec, path)} = {v!r} ({d}, motion {kind})",
+                     {"kind": kind, "margs": _first(_put(args, path, v))}) for v, d in _options(smp)]
+    wind = {k: v for k, v in raw["wind"].items() if k != "probability"} if "wind" in raw else {}
+    for section, table, arg in (("groom", raw.get("groom", {"kind": "sphere"}), "g"), ("params", raw.get("params", {}), "p"),
+                                ("wind", wind, "w")):
+        for path, smp in _sites(table):
+            out += [((section,) + path, f"{_key(section, path)} = {v!r} ({d})", {arg: _first(_put(table, path, v))})
+                    for v, d in _options(smp)]
+    return out
+
+
+def check_sampler_values(recipe: Recipe) -> None:
+    """Validate the scene of every value each sampler of the recipe can produce, one sampler at
+    a time, the others at their first option (first checked on its own: when that base is
+    invalid, the sampler whose other option repairs it is named). Raises :class:`RecipeError`
+    naming the key, the value and the problem: ``[groom].preset = 'mohak' (choice option 3 of 3): ...``."""
+    raw, where, rng = recipe.raw, recipe.where, np.random.default_rng(0)
+    variants = _variants(recipe)
+    kind0 = next((o["kind"] for _, _, o in variants if "kind" in o), "static")
+    base = {"g": _first(raw.get("groom", {"kind": "sphere"})), "p": _first(raw.get("params", {})),
+            "w": _first({k: v for k, v in raw["wind"].items() if k != "probability"}) if "wind" in raw else None,
+            "kind": kind0, "margs": _first({**_motion_common(raw.get("motion", {})), **raw.get("motion", {}).get(kind0, {})})}
+
+    def problem(over: dict) -> Optional[str]:
+        d = {**base, **over}
+        try:
+            motion = recipe._concrete_motion(d["kind"], d["margs"], rng, where)
+            recipe.make_scene(d["g"], d["p"], motion, d["w"], f"{recipe.name}/check", where)
+        except RecipeError as err:
+            return str(err)[len(where) + 2:] if str(err).startswith(f"{where}: ") else str(err)
+        return None
+
+    first = {}
+    for site, label, _ in variants:
+        first.setdefault(site, label)
+    err = problem({})
+    if err is not None:
+        culprit = next((first[site] for site, _, over in variants if problem(over) is None), None) or \
+            next((label for label in first.values() if label.split(" = ")[0] in err), None)
+        _fail(where, f"{culprit or 'with every sampler at its first option'}: {err}")
+    for _, label, over in variants:
+        err = problem(over)
+        if err is not None:
+            _fail(where, f"{label}: {err}")
