@@ -73,19 +73,22 @@ def strand_lengths(strands) -> np.ndarray:
         if p.shape[1] < 2:
             return np.zeros(p.shape[0])
         return np.linalg.norm(np.diff(p, axis=1), axis=-1).sum(1)
-    strands = [np.asarray(x, dtype=np.float64).reshape(-1, 3) for x in strands]
-    if not strands:
-        return np.zeros(0)
-    counts = np.array([len(x) for x in strands], dtype=np.int64)
-    pts = np.concatenate(strands, 0)
-    seg = np.linalg.norm(np.diff(pts, axis=0), axis=-1) if len(pts) > 1 else np.zeros(0)
-    seg = np.concatenate([seg, [0.0]])
-    ends = np.cumsum(counts)
-    seg[ends[ends > 0] - 1] = 0.0  # the step from a strand's last point to the next strand's root
-    starts = ends - counts
+    strands = [np.asarray(x).reshape(-1, 3) for x in strands]
     out = np.zeros(len(strands))
-    nonempty = counts > 0
-    out[nonempty] = np.add.reduceat(seg, starts[nonempty])
+    sizes = np.fromiter((len(x) for x in strands), dtype=np.int64, count=len(strands))
+    # vectorised blocks of about 8192 points: temporaries stay small for huge grooms
+    cuts = np.searchsorted(np.cumsum(sizes), np.arange(8192, int(sizes.sum()) + 8192, 8192), side="right")
+    bounds = np.unique(np.concatenate([[0], np.minimum(cuts, len(strands)), [len(strands)]]))
+    for first, last in zip(bounds[:-1], bounds[1:]):
+        block = strands[first:last]
+        counts = sizes[first:last]
+        pts = np.concatenate(block, 0).astype(np.float64) if int(counts.sum()) else np.zeros((0, 3))
+        d = np.diff(pts, axis=0)
+        seg = np.concatenate([np.sqrt(np.einsum("ij,ij->i", d, d)), [0.0]])
+        ends = np.cumsum(counts)
+        seg[ends[ends > 0] - 1] = 0.0  # the step from a strand's last point to the next strand's root
+        nonempty = counts > 0
+        out[first:last][nonempty] = np.add.reduceat(seg, (ends - counts)[nonempty])
     return out
 
 

@@ -168,6 +168,24 @@ def _open_stage(path):
     return stage
 
 
+def _values(path, where: str, value, dtype, width: int = 1) -> np.ndarray:
+    """An attribute's value as a flat-or-(n, width) numpy array; a corrupt value (wrong type,
+    an unregistered type name) is a GroomFileError naming the attribute."""
+    if value is None:
+        return np.zeros((0, width) if width > 1 else 0, dtype=dtype)
+    try:
+        arr = np.asarray(value, dtype=dtype)
+    except (TypeError, ValueError, OverflowError):
+        raise fail(path, f"corrupt USD file: {where} holds a {type(value).__name__}, not an array of numbers") from None
+    if width > 1:
+        if arr.size % width:
+            raise fail(path, f"corrupt USD file: {where} has {arr.size} values, not a multiple of {width}")
+        arr = arr.reshape(-1, width)
+    elif arr.ndim != 1:
+        raise fail(path, f"corrupt USD file: {where} has shape {arr.shape}, expected a flat array")
+    return arr
+
+
 def _read_time(points_attr, Usd):
     """Default time when ``points`` has a default value, else its first time sample."""
     if points_attr.Get(Usd.TimeCode.Default()) is not None:
@@ -210,8 +228,8 @@ def _read_usd(path, Gf, Tf, Usd, UsdGeom):
         time, sample = _read_time(curves.GetPointsAttr(), Usd)
         if sample is not None:
             usd_time = sample if usd_time is None else usd_time
-        counts = np.asarray(curves.GetCurveVertexCountsAttr().Get(time) or [], dtype=np.int64)
-        pts = np.asarray(curves.GetPointsAttr().Get(time) or [], dtype=np.float64).reshape(-1, 3)
+        counts = _values(path, f"{name}.curveVertexCounts", curves.GetCurveVertexCountsAttr().Get(time), np.int64)
+        pts = _values(path, f"{name}.points", curves.GetPointsAttr().Get(time), np.float64, 3)
         if len(counts) and counts.min() < 0:
             raise fail(path, f"corrupt USD file: {name} has a negative curveVertexCount {int(counts.min())}")
         if int(counts.sum()) != len(pts):
@@ -221,23 +239,25 @@ def _read_usd(path, Gf, Tf, Usd, UsdGeom):
         basis = str(curves.GetBasisAttr().Get(time))
         wrap = str(curves.GetWrapAttr().Get(time))
         xf = np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time), dtype=np.float64)
+        if xf.shape != (4, 4) or not np.all(np.isfinite(xf)):
+            raise fail(path, f"corrupt USD file: {name} has a non-finite transform")
         pts = pts @ xf[:3, :3] + xf[3, :3]  # USD matrices act on row vectors
         polylines = _curve_polylines(path, name, pts, counts, ctype, basis, wrap)
         strands += polylines
         curves_info.append(dict(prim=name, type=ctype, basis=basis if ctype == "cubic" else None, wrap=wrap,
                                 curves=int(len(counts))))
-        w = curves.GetWidthsAttr().Get(time)
-        if w is not None and len(w):
-            widths.append(np.asarray(w, dtype=np.float64))
+        w = _values(path, f"{name}.widths", curves.GetWidthsAttr().Get(time), np.float64)
+        if len(w):
+            widths.append(w)
             interps.add(str(curves.GetWidthsInterpolation()))
         api = UsdGeom.PrimvarsAPI(prim)
         tri = api.GetPrimvar("ams:rootTriangle")
         bary = api.GetPrimvar("ams:rootBarycentric")
         fv = api.GetPrimvar("ams:rootFaceVertices")
         if tri and bary and fv and tri.Get() is not None:
-            part = dict(root_triangles=np.asarray(tri.Get(), dtype=np.int64),
-                        root_barycentrics=np.asarray(bary.Get(), dtype=np.float32).reshape(-1, 3),
-                        root_face_vertices=np.asarray(fv.Get(), dtype=np.int64).reshape(-1, 3))
+            part = dict(root_triangles=_values(path, f"{name}.ams:rootTriangle", tri.Get(), np.int64),
+                        root_barycentrics=_values(path, f"{name}.ams:rootBarycentric", bary.Get(), np.float32, 3),
+                        root_face_vertices=_values(path, f"{name}.ams:rootFaceVertices", fv.Get(), np.int64, 3))
             if any(len(v) != len(counts) for v in part.values()):
                 raise fail(path, f"corrupt USD file: {name} has root binding primvars of the wrong length "
                                  f"(expected one per curve, {len(counts)})")
