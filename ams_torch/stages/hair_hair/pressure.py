@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import torch
 
-from ams_torch.stages.hair_hair.transfer import cell_mass, face_dims, face_views
+from ams_torch.stages.hair_hair.transfer import cell_mass, face_views
 
 __all__ = ["ACTIVE_FACE_DENSITY", "pressure_torch"]
 
@@ -73,7 +73,7 @@ def _weighted_neighbour_sum(phi: torch.Tensor, lo, hi) -> torch.Tensor:
 
 def _face_gradient(phi: torch.Tensor, c: int, h: float) -> torch.Tensor:
     """∂φ/∂x_c on the c-faces (B, *face dims), φ = 0 outside the grid."""
-    b, r = phi.shape[0], phi.shape[1]
+    r = phi.shape[1 + c]
     pad_shape = list(phi.shape)
     pad_shape[1 + c] = 1
     zero = phi.new_zeros(pad_shape)

@@ -35,7 +35,10 @@ def _inputs(grid: HairHairGrid, x: torch.Tensor, v: torch.Tensor, mass, free: Op
         raise ValueError(f"x must be a floating-point tensor; got {x.dtype}")
     lead = x.shape[:-3]
     b, p = math.prod(lead), s * n
-    mass = torch.as_tensor(mass, device=x.device, dtype=x.dtype)
+    if isinstance(mass, torch.Tensor):
+        mass = mass.to(device=x.device, dtype=x.dtype)
+    else:  # a fill, not a host-to-device copy (capturable by CUDA graphs)
+        mass = torch.full((), float(mass), device=x.device, dtype=x.dtype)
     try:
         m = mass.expand(*lead, s, n).reshape(b, p)
     except RuntimeError:

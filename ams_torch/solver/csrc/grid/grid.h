@@ -193,44 +193,44 @@ AMS_GRID_HD T cell_entry(const T* faces, int64_t r, int64_t i, int64_t j, int64_
   return entry[0];
 }
 
-// One projected weighted-Jacobi update of an active cell (index `cell` = (i R + j) R + k of its
-// scene): max(0, src + coef * sum_f phi_nb / rho_f + (1 - omega) phi), neighbours outside = 0.
+// Which of the six neighbours of cell (i, j, k) exist: bits x-, x+, y-, y+, z-, z+.
+AMS_GRID_HD unsigned neighbour_mask(int64_t r, int64_t i, int64_t j, int64_t k) {
+  return unsigned(i > 0) | unsigned(i < r - 1) << 1 | unsigned(j > 0) << 2 | unsigned(j < r - 1) << 3 |
+         unsigned(k > 0) << 4 | unsigned(k < r - 1) << 5;
+}
+
+// One projected weighted-Jacobi update of an active cell at `phi[cell]` (its neighbours at
+// +-R^2, +-R, +-1 where `mask` says they exist): max(0, src + coef * sum_f phi_nb / rho_f +
+// (1 - omega) phi), neighbours outside the grid = 0, summed in the order x-, x+, y-, y+, z-, z+.
 template <class T>
-AMS_GRID_HD T sweep_cell(const T* phi, int64_t r, int64_t cell, const T* e, T one_minus_omega) {
-  const int64_t k = cell % r;
-  const int64_t j = (cell / r) % r;
-  const int64_t i = cell / (r * r);
+AMS_GRID_HD T sweep_cell(const T* phi, int64_t r, int64_t cell, unsigned mask, const T* e, T one_minus_omega) {
   T n = T(0);
-  if (i > 0) n = n + e[2] * phi[cell - r * r];
-  if (i < r - 1) n = n + e[3] * phi[cell + r * r];
-  if (j > 0) n = n + e[4] * phi[cell - r];
-  if (j < r - 1) n = n + e[5] * phi[cell + r];
-  if (k > 0) n = n + e[6] * phi[cell - 1];
-  if (k < r - 1) n = n + e[7] * phi[cell + 1];
+  if (mask & 1u) n = n + e[2] * phi[cell - r * r];
+  if (mask & 2u) n = n + e[3] * phi[cell + r * r];
+  if (mask & 4u) n = n + e[4] * phi[cell - r];
+  if (mask & 8u) n = n + e[5] * phi[cell + r];
+  if (mask & 16u) n = n + e[6] * phi[cell - 1];
+  if (mask & 32u) n = n + e[7] * phi[cell + 1];
   T t = e[0] + e[1] * n;
   t = t + one_minus_omega * phi[cell];
   return t < T(0) ? T(0) : t;
 }
 
-// The G2P field of face `face` of component c (one scene): pic * u + du with u = mom / M
-// (0 where massless) and du = -((phi_hi - phi_lo) / h) * h^3 / M (0 at or below eps).
+// The G2P field of the c-face (a0, a1, a2) (flat index `face` in its grid) of one scene:
+// pic * u + du with u = mom / M (0 where massless) and du = -((phi_hi - phi_lo) / h) * h^3 / M
+// (0 at or below eps); phi_hi is the cell with the face's indices (when inside), phi_lo the
+// one below along c, phi = 0 outside the grid.
 template <class T>
-AMS_GRID_HD T face_field(const T* faces, const T* phi, int64_t r, int c, int64_t face, const PressureConsts<T>& q) {
+AMS_GRID_HD T face_field(const T* faces, const T* phi, int64_t r, int c, int64_t a0, int64_t a1, int64_t a2,
+                         int64_t face, const PressureConsts<T>& q) {
   const int64_t nf = num_faces(r);
   const T mf = faces[2 * (c * nf + face)];
   if (!(mf > T(0))) return T(0); // u = 0 and du = -(g * 0): exactly 0 for a finite phi
   const T pf = faces[2 * (c * nf + face) + 1];
   const T u = pf / mf;
   const T inv = mf > q.eps ? q.h3 / mf : T(0);
-  const int64_t n1 = c == 1 ? r + 1 : r;
-  const int64_t n2 = c == 2 ? r + 1 : r;
-  const int64_t a2 = face % n2;
-  const int64_t a1 = (face / n2) % n1;
-  const int64_t a0 = face / (n2 * n1);
   const int64_t along = c == 0 ? a0 : (c == 1 ? a1 : a2);
   const int64_t stride = c == 0 ? r * r : (c == 1 ? r : 1);
-  // the cell above the face has the face's indices (valid when along < R); the one below is
-  // one step down along c (valid when along > 0); phi = 0 outside the grid
   const int64_t cell = (a0 * r + a1) * r + a2;
   const T phi_hi = along < r ? phi[cell] : T(0);
   const T phi_lo = along > 0 ? phi[cell - stride] : T(0);

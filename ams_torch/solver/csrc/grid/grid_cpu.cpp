@@ -9,8 +9,8 @@
 //     (slab colour, then particle index), whatever the number of threads. (Per-thread grids
 //     would cost a full grid of zeroing and reduction per thread, atomics a varying order.)
 //   * pressure: active cells (six massive faces) of scenes where some cell pushes (src > 0) are
-//     compacted in cell order by x-slabs (count, prefix, fill); the Jacobi sweeps are
-//     double-buffered, parallel over the compacted cells. Scenes without a pushing cell skip
+//     compacted in cell order by x-slabs (count, prefix, fill), with their neighbour masks; the
+//     Jacobi sweeps are double-buffered, parallel over the compacted cells. Scenes without a pushing cell skip
 //     the sweeps: phi stays exactly 0, as the torch sweeps leave it.
 //   * field (per face) and G2P (per particle): independent, parallel.
 #include <ATen/Dispatch.h>
@@ -157,6 +157,7 @@ void pressure_impl(const T* faces, T rho0, T dt, T* phi_a, T* phi_b, T* field, i
     if (total > 0) {
       // pass 2: the compacted list, in cell order
       std::vector<int64_t> cells(static_cast<size_t>(total));
+      std::vector<uint8_t> masks(static_cast<size_t>(total));
       std::vector<T> entries(size_t(total * kEntry));
       at::parallel_for(0, B * r, 1, [&](int64_t s0, int64_t s1) {
         for (int64_t s = s0; s < s1; ++s) {
@@ -168,6 +169,7 @@ void pressure_impl(const T* faces, T rho0, T dt, T* phi_a, T* phi_b, T* field, i
             for (int64_t k = 0; k < r; ++k)
               if (cell_active(fs, r, i, j, k, q.eps)) {
                 cell_entry(fs, r, i, j, k, q, entries.data() + kEntry * slot);
+                masks[slot] = uint8_t(neighbour_mask(r, i, j, k));
                 cells[slot++] = (s / r) * r3 + (i * r + j) * r + k;
               }
         }
@@ -177,20 +179,28 @@ void pressure_impl(const T* faces, T rho0, T dt, T* phi_a, T* phi_b, T* field, i
         T* dst = it % 2 == 0 ? phi_b : phi_a;
         at::parallel_for(0, total, kCellGrain, [&](int64_t c0, int64_t c1) {
           for (int64_t c = c0; c < c1; ++c) {
-            const int64_t g = cells[c];
-            const int64_t base = (g / r3) * r3;
-            dst[g] = sweep_cell(src + base, r, g - base, entries.data() + kEntry * c, q.one_minus_omega);
+            dst[cells[c]] = sweep_cell(src, r, cells[c], masks[c], entries.data() + kEntry * c, q.one_minus_omega);
           }
         });
       }
     }
     phi = iterations % 2 == 0 ? phi_a : phi_b;
   }
-  at::parallel_for(0, B * 3 * nf, kCellGrain * 8, [&](int64_t f0, int64_t f1) {
-    for (int64_t f = f0; f < f1; ++f) {
-      const int64_t b = f / (3 * nf);
-      const int c = int((f / nf) % 3);
-      field[f] = face_field(faces + b * 3 * nf * 2, phi + b * r3, r, c, f % nf, q);
+  // planes (scene, component, a0) of the face grids, each n1 n2 contiguous faces
+  at::parallel_for(0, B * 3 * (r + 1), 1, [&](int64_t w0, int64_t w1) {
+    for (int64_t w = w0; w < w1; ++w) {
+      const int64_t b = w / (3 * (r + 1));
+      const int c = int((w / (r + 1)) % 3);
+      const int64_t a0 = w % (r + 1);
+      if (c != 0 && a0 == r) continue; // only the x-faces have R + 1 planes along x
+      const int64_t n1 = c == 1 ? r + 1 : r, n2 = c == 2 ? r + 1 : r;
+      const T* fs = faces + b * 3 * nf * 2;
+      const T* ps = phi + b * r3;
+      T* out = field + (b * 3 + c) * nf;
+      for (int64_t a1 = 0; a1 < n1; ++a1) {
+        const int64_t row = (a0 * n1 + a1) * n2;
+        for (int64_t a2 = 0; a2 < n2; ++a2) out[row + a2] = face_field(fs, ps, r, c, a0, a1, a2, row + a2, q);
+      }
     }
   });
 }

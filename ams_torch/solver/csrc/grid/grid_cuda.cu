@@ -89,7 +89,11 @@ __global__ void __launch_bounds__(kSweepThreads) sweep_kernel(const T* entries, 
   for (int64_t it = 0; it < iterations; ++it) {
     const T* src = (it & 1) ? pb : pa;
     T* dst = (it & 1) ? pa : pb;
-    for (int64_t k = threadIdx.x; k < n; k += blockDim.x) dst[cl[k]] = sweep_cell(src, r, cl[k], e + kEntry * k, keep);
+    for (int64_t k = threadIdx.x; k < n; k += blockDim.x) {
+      const int64_t cell = cl[k];
+      const unsigned mask = neighbour_mask(r, cell / (r * r), (cell / r) % r, cell % r);
+      dst[cell] = sweep_cell(src, r, cell, mask, e + kEntry * k, keep);
+    }
     __syncthreads(); // this sweep's writes are visible to the whole block before the next reads them
   }
 }
@@ -102,7 +106,11 @@ __global__ void field_kernel(const T* faces, const T* phi, const T* rho0, const 
   for (int64_t f = int64_t(blockIdx.x) * blockDim.x + threadIdx.x; f < B * 3 * nf;
        f += int64_t(gridDim.x) * blockDim.x) {
     const int64_t b = f / (3 * nf);
-    field[f] = face_field(faces + b * 3 * nf * 2, phi + b * r3, r, int((f / nf) % 3), f % nf, q);
+    const int c = int((f / nf) % 3);
+    const int64_t face = f % nf;
+    const int64_t n1 = c == 1 ? r + 1 : r, n2 = c == 2 ? r + 1 : r;
+    field[f] = face_field(faces + b * 3 * nf * 2, phi + b * r3, r, c, face / (n1 * n2), (face / n2) % n1, face % n2,
+                          face, q);
   }
 }
 
