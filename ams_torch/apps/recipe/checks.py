@@ -1,0 +1,154 @@
+"""Validating a recipe: its tables (top level, [store], [split]) and the scene of every value each
+sampler can produce."""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Optional
+
+import numpy as np
+
+from ams_torch.apps.recipe.samplers import (RecipeError, _fail, check_samplers, first, has_sampler, is_sampler,
+                                            key_name, options, put, sites)
+from ams_torch.apps.scene.schema import ABSENT, boolean, check_table, integer, is_number, number, one_of, string
+
+if TYPE_CHECKING:
+    from ams_torch.apps.recipe.core import Recipe
+
+__all__ = ["STORE", "STORE_DEFAULTS", "SPLIT", "SPLITS", "SPLIT_DEFAULTS", "TOP", "check_top", "check_sampler_values",
+           "motion_types", "motion_common"]
+
+SPLITS = ("train", "valid", "test")
+SPLIT_DEFAULTS = {"train": 0.8, "valid": 0.1, "test": 0.1}
+
+
+def motion_types() -> set:
+    from ams_torch.apps.motion import MOTIONS
+
+    return set(MOTIONS) | {"random", "recorded"}
+
+
+def motion_common(m: dict) -> dict:
+    """Arguments of ``[motion]`` common to every type (all but ``type`` and the per-type tables)."""
+    return {k: v for k, v in m.items() if k != "type" and k not in motion_types()}
+
+
+def _any(v, key, ctx):
+    return v
+
+
+def _name(v, key, ctx):
+    if not isinstance(v, str) or not v or any(c in v for c in "/\\"):
+        ctx.fail(f"name must be a non-empty string without slashes; got {v!r}")
+    return v
+
+
+def _table(section: str, spec: dict):
+    return lambda v, key, ctx: check_table(v, spec, section, ctx.where, ctx.base, RecipeError)
+
+
+STORE = {"positions": (boolean, True), "velocities": (boolean, False), "guides": (integer(0, 2**31 - 1), 0),
+         "poses": (boolean, True), "precision": (one_of("float32", "float16"), "float32"),
+         "compression": (one_of("gzip", "lzf", "none"), "gzip"), "compression_level": (integer(0, 9), 4)}
+STORE_DEFAULTS = {k: default for k, (_, default) in STORE.items()}
+SPLIT = {k: (number(0, 1), ABSENT) for k in SPLITS}
+TOP = {"name": (_name, ABSENT), "description": (string, ABSENT), "sequences": (integer(1, 2**40), ABSENT),
+       "frames": (integer(1, 2**31 - 1), ABSENT), "batch": (integer(1, 2**31 - 1), ABSENT),
+       "seed": (integer(0, 2**63 - 1), ABSENT), "dtype": (one_of("float32", "float64"), ABSENT),
+       "store": (_table("store", STORE), ABSENT), "split": (_table("split", SPLIT), ABSENT),
+       **{k: (_any, ABSENT) for k in ("dt", "substeps", "head", "groom", "params", "stages", "hair_hair", "colliders",
+                                      "motion", "wind")}}
+_FIXED = ("head", "stages", "hair_hair", "dt", "substeps", "colliders")
+
+
+def check_top(raw: dict, where: str, base: str) -> None:
+    check_table(raw, TOP, "top level", where, base, RecipeError)
+    for key in ("sequences", "frames"):
+        if key not in raw:
+            _fail(where, f"{key} must be an integer >= 1; got nothing (the key is required)")
+    for key in _FIXED:
+        if key in raw and has_sampler(raw[key]):
+            _fail(where, f"{key} is fixed for a whole dataset; samplers are allowed in [groom], [params], "
+                         f"[motion] and [wind]")
+    for key in ("groom", "params", "motion", "wind"):
+        if key in raw:
+            if not isinstance(raw[key], dict):
+                _fail(where, f"[{key}] must be a table; got {raw[key]!r}")
+            check_samplers(raw[key], where, f"[{key}]")
+    for kind in motion_types() & set(raw.get("motion", {})):
+        if not isinstance(raw["motion"][kind], dict):
+            _fail(where, f"[motion.{kind}] must be a table of that motion's arguments; got {raw['motion'][kind]!r}")
+    p = raw.get("wind", {}).get("probability", 1.0)
+    if not (is_number(p) and 0 <= p <= 1):
+        _fail(where, f"[wind].probability must be a number in [0, 1]; got {p!r}")
+    st = {**STORE_DEFAULTS, **raw.get("store", {})}
+    if not (st["positions"] or st["guides"]):
+        _fail(where, "[store] keeps nothing: set positions = true or guides > 0")
+    if "split" in raw:
+        raw["split"] = ratios = {k: float(raw["split"].get(k, 0.0)) for k in SPLITS}  # a share left out is 0
+        total = sum(ratios.values())
+        if abs(total - 1.0) > 1e-6:
+            _fail(where, f"[split] shares must sum to 1; got {' + '.join(f'{k} {v:g}' for k, v in ratios.items())} "
+                         f"= {total:g}")
+
+
+def variants(recipe: "Recipe") -> list:
+    """(site, label, overrides) for every value each sampler can produce; a site is one sampler
+    (its first variant is its first option), overrides replace the base draw (``kind`` and
+    ``margs`` the motion, ``g``/``p``/``w`` the groom/params/wind tables)."""
+    raw = recipe.raw
+    m = raw.get("motion", {"type": "static"})
+    types = m.get("type", "static")
+    kinds = options(types) if is_sampler(types) else [(types, "")]
+    kinds += [(k, f"[motion.{k}] table") for k in sorted(motion_types() & set(m)) if k not in [x for x, _ in kinds]]
+    out = []
+    for kind, how in kinds:
+        label = f"[motion].type = {kind!r}{f' ({how})' if how else ''}"
+        if not isinstance(kind, str) or kind not in motion_types():
+            _fail(recipe.where, f"{label}: must be one of {sorted(motion_types())}")
+        args = {**motion_common(m), **m.get(kind, {})}
+        out.append(("type", label, {"kind": kind, "margs": first(args)}))
+        for path, smp in sites(args):
+            sec = "motion" if path[0] in motion_common(m) else f"motion.{kind}"
+            out += [((kind,) + path, f"{key_name(sec, path)} = {v!r} ({d}, motion {kind})",
+                     {"kind": kind, "margs": first(put(args, path, v))}) for v, d in options(smp)]
+    wind = {k: v for k, v in raw["wind"].items() if k != "probability"} if "wind" in raw else {}
+    for section, table, arg in (("groom", raw.get("groom", {"kind": "sphere"}), "g"), ("params", raw.get("params", {}), "p"),
+                                ("wind", wind, "w")):
+        for path, smp in sites(table):
+            out += [((section,) + path, f"{key_name(section, path)} = {v!r} ({d})", {arg: first(put(table, path, v))})
+                    for v, d in options(smp)]
+    return out
+
+
+def check_sampler_values(recipe: "Recipe") -> None:
+    """Validate the scene of every value each sampler of the recipe can produce, one sampler at
+    a time, the others at their first option (first checked on its own: when that base is
+    invalid, the sampler whose other option repairs it is named). Raises :class:`RecipeError`
+    naming the key, the value and the problem: ``[groom].preset = 'mohak' (choice option 3 of 3): ...``."""
+    raw, where, rng = recipe.raw, recipe.where, np.random.default_rng(0)
+    cases = variants(recipe)
+    kind0 = next((o["kind"] for _, _, o in cases if "kind" in o), "static")
+    base = {"g": first(raw.get("groom", {"kind": "sphere"})), "p": first(raw.get("params", {})),
+            "w": first({k: v for k, v in raw["wind"].items() if k != "probability"}) if "wind" in raw else None,
+            "kind": kind0, "margs": first({**motion_common(raw.get("motion", {})), **raw.get("motion", {}).get(kind0, {})})}
+
+    def problem(over: dict) -> Optional[str]:
+        d = {**base, **over}
+        try:
+            motion = recipe._concrete_motion(d["kind"], d["margs"], rng, where)
+            recipe.make_scene(d["g"], d["p"], motion, d["w"], f"{recipe.name}/check", where)
+        except RecipeError as err:
+            return str(err)[len(where) + 2:] if str(err).startswith(f"{where}: ") else str(err)
+        return None
+
+    first_label = {}
+    for site, label, _ in cases:
+        first_label.setdefault(site, label)
+    err = problem({})
+    if err is not None:
+        culprit = next((first_label[site] for site, _, over in cases if problem(over) is None), None) or \
+            next((label for label in first_label.values() if label.split(" = ")[0] in err), None)
+        _fail(where, f"{culprit or 'with every sampler at its first option'}: {err}")
+    for _, label, over in cases:
+        err = problem(over)
+        if err is not None:
+            _fail(where, f"{label}: {err}")

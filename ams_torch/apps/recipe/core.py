@@ -1,0 +1,278 @@
+"""The :class:`Recipe`: sizes, seeding, draws of groups and sequences, splits, and the scene each
+batch group simulates; reading and validating recipe files."""
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import math
+import os
+from dataclasses import dataclass
+from typing import Any, Dict, List, Optional
+
+import numpy as np
+
+from ams_torch.apps.recipe.checks import (SPLIT_DEFAULTS, SPLITS, STORE_DEFAULTS, check_sampler_values, check_top,
+                                          motion_common, motion_types)
+from ams_torch.apps.recipe.samplers import RecipeError, _fail, sample
+from ams_torch.apps.scene import SceneError, parse_scene, read_toml
+from ams_torch.apps.scene.schema import is_number
+
+__all__ = ["Recipe", "load_recipe", "parse_recipe"]
+
+_NOT_HASHED = ("name", "description", "sequences", "store", "split")
+_RANDOM_MOTION = {"keys": 4, "duration": None, "max_angle": 0.6, "max_translation": 0.05}
+_GROUP, _SEQUENCE, _SPLIT = 0, 1, 2
+
+
+def _canonical(d: Any) -> str:
+    return json.dumps(d, sort_keys=True, separators=(",", ":"), default=str)
+
+
+def _random_keyframes(args: dict, frames: int, dt: float, rng: np.random.Generator, where: str) -> dict:
+    """The ``random`` motion: a concrete ``keyframes`` spec drawn from rng."""
+    unknown = sorted(set(args) - set(_RANDOM_MOTION))
+    if unknown:
+        _fail(where, f"[motion] (random): unknown argument(s) {unknown}; allowed: {sorted(_RANDOM_MOTION)}")
+    a = {**_RANDOM_MOTION, **args}
+    keys = a["keys"]
+    if isinstance(keys, bool) or not isinstance(keys, int) or not 1 <= keys <= 10_000:
+        _fail(where, f"[motion] (random): keys must be an integer in [1, 10000]; got {keys!r}")
+    if a["duration"] is not None and not (is_number(a["duration"]) and a["duration"] > 0):
+        _fail(where, f"[motion] (random): duration must be a positive number (s); got {a['duration']!r}")
+    for k in ("max_angle", "max_translation"):
+        if not (is_number(a[k]) and a[k] >= 0):
+            _fail(where, f"[motion] (random): {k} must be a finite number >= 0; got {a[k]!r}")
+    duration = float(a["duration"]) if a["duration"] is not None else frames * dt
+    times = np.linspace(0.0, duration, keys + 1)
+    axes = rng.normal(size=(keys, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    rotvecs = np.concatenate([np.zeros((1, 3)), axes * rng.uniform(-1, 1, size=(keys, 1)) * float(a["max_angle"])])
+    trans = np.concatenate([np.zeros((1, 3)), rng.uniform(-1, 1, size=(keys, 3)) * float(a["max_translation"])])
+    return {"type": "keyframes", "times": times.tolist(), "rotvecs": rotvecs.tolist(), "translations": trans.tolist()}
+
+
+@dataclass
+class Recipe:
+    """A validated recipe. ``raw`` is the recipe as written (paths as written); ``base`` the
+    folder its relative paths are resolved against; ``hash`` the hex digest that seeds it."""
+
+    raw: Dict[str, Any]
+    where: str
+    base: str
+    hash: str
+
+    # -- sizes -----------------------------------------------------------------------------
+    @property
+    def name(self) -> str:
+        return self.raw["name"]
+
+    @property
+    def num_sequences(self) -> int:
+        return int(self.raw["sequences"])
+
+    @property
+    def frames(self) -> int:
+        return int(self.raw["frames"])
+
+    @property
+    def batch(self) -> int:
+        return int(self.raw.get("batch", 1))
+
+    @property
+    def num_groups(self) -> int:
+        """Batch groups: group g simulates sequences g·batch … (g+1)·batch − 1 together."""
+        return -(-self.num_sequences // self.batch)
+
+    @property
+    def frame_dt(self) -> float:
+        """Frame length (s): the top-level ``dt``, else a fixed ``[params].dt``, else the default."""
+        if "dt" in self.raw:
+            return float(self.raw["dt"])
+        dt = self.raw.get("params", {}).get("dt")
+        if isinstance(dt, (int, float)) and not isinstance(dt, bool):
+            return float(dt)
+        from ams_torch.sim.params import Params
+
+        return Params().dt
+
+    @property
+    def store(self) -> Dict[str, Any]:
+        return {**STORE_DEFAULTS, **self.raw.get("store", {})}
+
+    @property
+    def dtype_name(self) -> str:
+        return self.raw.get("dtype", "float32")
+
+    @property
+    def digest(self) -> str:
+        """SHA-256 (hex) of the whole recipe as validated (sizes, storage and split included):
+        the identity of a dataset; every file of one dataset carries the same digest."""
+        return hashlib.sha256(_canonical(self.raw).encode()).hexdigest()
+
+    @property
+    def split_ratios(self) -> Dict[str, float]:
+        return {**SPLIT_DEFAULTS, **self.raw.get("split", {})}
+
+    def group_splits(self) -> List[str]:
+        """The split (``"train"``, ``"valid"`` or ``"test"``) of every batch group: a permutation of
+        the groups drawn from the recipe's seed, cut into runs whose lengths are the ratios times
+        the number of groups, rounded by largest remainder (so they sum to the group count)."""
+        cached = self.__dict__.get("_group_splits")
+        if cached is None:
+            n = self.num_groups
+            exact = [self.split_ratios[k] * n for k in SPLITS]
+            counts = [int(math.floor(e)) for e in exact]
+            by_rest = sorted(range(len(SPLITS)), key=lambda j: (-(exact[j] - counts[j]), j))
+            for j in by_rest[:n - sum(counts)]:
+                counts[j] += 1
+            order = self.rng(_SPLIT, 0).permutation(n)
+            cached = [""] * n
+            pos = 0
+            for name, c in zip(SPLITS, counts):
+                for g in order[pos:pos + c]:
+                    cached[int(g)] = name
+                pos += c
+            self.__dict__["_group_splits"] = cached
+        return list(cached)
+
+    def sequence_split(self, i: int) -> str:
+        """The split of sequence i (that of its batch group)."""
+        return self.group_splits()[i // self.batch]
+
+    def group_sequences(self, g: int) -> List[int]:
+        """Indices of the sequences of batch group g."""
+        if not 0 <= g < self.num_groups:
+            raise IndexError(f"group {g} out of range (recipe {self.name!r} has {self.num_groups} groups)")
+        return list(range(g * self.batch, min((g + 1) * self.batch, self.num_sequences)))
+
+    def shard_groups(self, shard: int, num_shards: int) -> List[int]:
+        """Groups of shard ``shard`` of ``num_shards`` (round robin: g % num_shards == shard)."""
+        if not (isinstance(num_shards, int) and num_shards >= 1 and 0 <= shard < num_shards):
+            raise ValueError(f"shard must be i/n with 0 <= i < n; got {shard}/{num_shards}")
+        return [g for g in range(self.num_groups) if g % num_shards == shard]
+
+    # -- random draws ---------------------------------------------------------------------
+    def _seed_sequence(self, kind: int, index: int) -> np.random.SeedSequence:
+        entropy = [int(self.hash[:16], 16), int(self.raw.get("seed", 0))]
+        return np.random.SeedSequence(entropy, spawn_key=(kind, index))
+
+    def rng(self, kind: int, index: int) -> np.random.Generator:
+        """The random stream of a batch group (kind 0) or a sequence (kind 1)."""
+        return np.random.default_rng(self._seed_sequence(kind, index))
+
+    def sequence_seed(self, i: int) -> int:
+        """A 63-bit integer identifying sequence i's random stream (stored with the sequence)."""
+        return int(self._seed_sequence(_SEQUENCE, i).generate_state(1, np.uint64)[0] >> np.uint64(1))
+
+    def group_spec(self, g: int) -> Dict[str, Any]:
+        """The draws of batch group g: concrete ``groom`` and ``params`` tables (JSON-friendly)."""
+        rng = self.rng(_GROUP, g)
+        groom = sample(self.raw.get("groom", {"kind": "sphere"}), rng)
+        if "seed" not in groom and ("preset" in groom):
+            groom["seed"] = int(rng.integers(0, 2**31 - 1))
+        params = sample(self.raw.get("params", {}), rng)
+        return {"group": g, "groom": groom, "params": params}
+
+    def sequence_spec(self, i: int) -> Dict[str, Any]:
+        """The draws of sequence i: concrete ``motion`` (a motion dict for
+        :func:`ams_torch.make_motion`) and ``wind`` (Wind fields, or None)."""
+        if not 0 <= i < self.num_sequences:
+            raise IndexError(f"sequence {i} out of range (recipe {self.name!r} has {self.num_sequences})")
+        rng = self.rng(_SEQUENCE, i)
+        where = f"{self.where} (sequence {i})"
+        motion = self._draw_motion(rng, where)
+        wind = None
+        w = self.raw.get("wind")
+        if w is not None:
+            p = float(w.get("probability", 1.0))
+            on = bool(rng.uniform() < p)  # always drawn, so later draws do not depend on p
+            drawn = sample({k: v for k, v in w.items() if k != "probability"}, rng)
+            seed = int(rng.integers(0, 2**31 - 1))
+            if on:
+                drawn.setdefault("seed", seed)
+                wind = drawn
+        return {"index": i, "group": i // self.batch, "seed": self.sequence_seed(i), "motion": motion, "wind": wind}
+
+    def _draw_motion(self, rng: np.random.Generator, where: str) -> dict:
+        m = self.raw.get("motion")
+        if m is None:
+            return {"type": "static"}
+        kind = sample(m.get("type", "static"), rng)
+        if not isinstance(kind, str) or kind not in motion_types():
+            _fail(where, f"[motion].type must be one of {sorted(motion_types())}; got {kind!r}")
+        args = sample(motion_common(m), rng)
+        args.update(sample(m.get(kind, {}), rng))
+        return self._concrete_motion(kind, args, rng, where)
+
+    def _concrete_motion(self, kind: str, args: dict, rng: np.random.Generator, where: str) -> dict:
+        if kind == "random":
+            return _random_keyframes(args, self.frames, self.frame_dt, rng, where)
+        if kind == "recorded" and isinstance(args.get("path"), str) and not os.path.isabs(args["path"]):
+            args["path"] = os.path.join(self.base, args["path"])
+        return {"type": kind, **args}
+
+    def make_scene(self, groom: dict, params: dict, motion: dict, wind: Optional[dict], name: str, where: str) -> dict:
+        """The validated scene of concrete ``groom``/``params``/``motion``/``wind`` tables with the
+        recipe's fixed sections; a :class:`RecipeError` (naming the key) when it is invalid."""
+        scene = {"name": name, "frames": self.frames, "groom": groom, "params": params, "motion": motion}
+        for k in ("dt", "substeps", "head", "stages", "hair_hair", "colliders"):
+            if k in self.raw:
+                scene[k] = copy.deepcopy(self.raw[k])
+        if wind is not None:
+            scene["wind"] = wind
+        try:
+            scene = parse_scene(scene, where=where, base=self.base)
+        except SceneError as err:
+            raise RecipeError(str(err)) from None
+        guides = self.store["guides"]
+        strands = max(1, int(round(scene["groom"].get("strands", 1000) * float(scene["scale"]))))
+        if guides > strands:
+            _fail(where, f"[store].guides = {guides} exceeds the groom's {strands} strands")
+        return scene
+
+    def group_scene(self, g: int) -> dict:
+        """The validated scene (see :func:`ams_torch.apps.scene.parse_scene`) that simulates batch group g;
+        its ``motion`` is the group's first sequence's (the others differ only in motion and wind)."""
+        spec = self.group_spec(g)
+        first = self.sequence_spec(self.group_sequences(g)[0])
+        return self.make_scene(spec["groom"], spec["params"], first["motion"], first["wind"], f"{self.name}/group{g}",
+                               f"{self.where} (group {g})")
+
+    def to_json(self) -> str:
+        return _canonical(self.raw)
+
+
+def load_recipe(path: str, overrides: Optional[dict] = None) -> Recipe:
+    """Read and validate a recipe TOML file; ``overrides`` replace top-level keys
+    (e.g. ``{"sequences": 2}``)."""
+    raw = read_toml(path, "recipe", RecipeError, overrides)
+    return parse_recipe(raw, where=path, base=os.path.dirname(os.path.abspath(path)))
+
+
+def parse_recipe(raw: dict, where: str = "recipe", base: str = ".") -> Recipe:
+    """Validate a recipe dict (as read from TOML). Raises :class:`RecipeError` naming the key.
+    Checks the structure and the samplers, validates the scene made by every value each
+    sampler can produce (:func:`check_sampler_values`), then draws group 0 and sequence 0 and
+    validates what they make, so mistakes surface before any simulation."""
+    if not isinstance(raw, dict):
+        _fail(where, "a recipe must be a table")
+    raw = copy.deepcopy(raw)
+    raw.setdefault("name", "dataset")
+    check_top(raw, where, base)
+    content = {k: v for k, v in raw.items() if k not in _NOT_HASHED}
+    digest = hashlib.sha256(_canonical(content).encode()).hexdigest()
+    recipe = Recipe(raw=raw, where=where, base=base, hash=digest)
+    check_sampler_values(recipe)
+    recipe.group_scene(0)
+    from ams_torch.apps.motion import make_motion
+    from ams_torch.stages.wind import Wind
+
+    spec = recipe.sequence_spec(0)
+    try:
+        make_motion(spec["motion"])
+        if spec["wind"] is not None:
+            Wind(**spec["wind"])
+    except (TypeError, ValueError, FileNotFoundError) as err:
+        _fail(where, f"sequence 0: {err}")
+    return recipe
