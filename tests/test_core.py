@@ -6,7 +6,6 @@ import torch
 
 import ams_torch as at
 from ams_torch.sim.inextensibility import max_stretch
-from ams_torch.geometry.pose import axis_angle_to_matrix
 from ams_torch.testing import curly_strand, shake_poses, sphere_groom, wisp
 
 F64 = torch.float64

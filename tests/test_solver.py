@@ -3,8 +3,8 @@ import pytest
 import torch
 
 import ams_torch as at
-from ams_torch.sim.integrator import assemble_system
-from ams_torch.sim.model import build_model
+from ams_torch.sim.assembly import assemble_system
+from ams_torch.sim.model import coefficients
 from ams_torch.solver.reference import banded_matvec, banded_to_dense, solve_banded_dense, solve_banded_plain
 
 
@@ -68,10 +68,11 @@ def stiff_strand_system(strands=8, n=32, seed=0):
     s = torch.linspace(0, 0.3, n, dtype=torch.float64)
     rest = torch.stack((s, 0.01 * torch.sin(40 * s), 0.01 * torch.cos(30 * s)), -1).expand(strands, n, 3)
     params = at.Params(stretch_stiffness=1e8, particle_mass=1e-6, num_pinned=0, sag_free=False)
-    model = build_model(rest, params, dtype=torch.float64)
+    sim = at.Simulator(rest, params, dtype=torch.float64)
     x = rest + 1e-3 * torch.randn(strands, n, 3, generator=g, dtype=torch.float64)
     v = torch.randn(strands, n, 3, generator=g, dtype=torch.float64)
-    blocks, rhs = assemble_system(model, params, x, v, x, torch.zeros_like(x), torch.zeros_like(x), 1 / 60)
+    blocks, rhs = assemble_system(sim.model, coefficients(sim.model), sim.config, x, v, x, torch.zeros_like(x),
+                                  torch.zeros_like(x), 1 / 60)
     return blocks, rhs
 
 

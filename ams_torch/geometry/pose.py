@@ -1,12 +1,14 @@
 """Rigid poses of the head (and of colliders): rotation, translation and their velocities."""
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+import math
+from dataclasses import InitVar, dataclass
 from typing import Optional, Sequence
 
 import torch
+import torch.utils._pytree as pytree
 
-__all__ = ["Pose", "axis_angle_to_matrix", "matrix_to_axis_angle"]
+__all__ = ["Pose", "axis_angle_to_matrix", "matrix_to_axis_angle", "check_rotation", "rotation_tolerance"]
 
 
 def axis_angle_to_matrix(rotvec: torch.Tensor) -> torch.Tensor:
@@ -36,6 +38,38 @@ def matrix_to_axis_angle(rot: torch.Tensor) -> torch.Tensor:
     return w * scale[..., None]
 
 
+def rotation_tolerance(dtype: torch.dtype) -> float:
+    """Largest accepted ``max |R Rᵀ − I|`` and ``|det R − 1|`` for a rotation of this dtype:
+    10 √ε (3.5e-3 in float32, 1.5e-7 in float64)."""
+    return 10.0 * math.sqrt(torch.finfo(dtype).eps)
+
+
+def check_rotation(rotation: torch.Tensor, name: str = "rotation") -> None:
+    """Raise ``ValueError`` naming ``name`` unless ``rotation`` (..., 3, 3) holds finite proper
+    rotations: orthonormal and det +1 within :func:`rotation_tolerance` (a host sync)."""
+    r = torch.as_tensor(rotation)
+    if r.dim() < 2 or tuple(r.shape[-2:]) != (3, 3):
+        raise ValueError(f"{name} must have shape (..., 3, 3); got {tuple(r.shape)}")
+    if not r.is_floating_point():
+        raise ValueError(f"{name} must be a floating-point tensor; got {r.dtype}")
+    if r.numel() == 0:
+        return
+    if not bool(torch.isfinite(r).all()):
+        raise ValueError(f"{name} contains NaN/Inf")
+    tol = rotation_tolerance(r.dtype)
+    eye = torch.eye(3, dtype=r.dtype, device=r.device)
+    ortho = (r @ r.transpose(-1, -2) - eye).abs().amax(dim=(-1, -2)).reshape(-1)
+    det = torch.linalg.det(r).reshape(-1)
+    bad = (ortho > tol) | ((det - 1).abs() > tol)
+    if bool(bad.any()):
+        k = int(torch.nonzero(bad)[0])
+        where = f" at index {tuple(int(i) for i in torch.unravel_index(torch.tensor(k), r.shape[:-2]))}" \
+            if r.dim() > 2 else ""
+        raise ValueError(f"{name} is not a rotation{where}: max |R Rᵀ − I| = {float(ortho[k]):.3g}, det = "
+                         f"{float(det[k]):.6g}; a rotation must be orthonormal with det +1 (tolerance {tol:.2g} "
+                         f"for {r.dtype})")
+
+
 @dataclass(frozen=True)
 class Pose:
     """A rigid pose with its velocity (world frame), for the head or a collider.
@@ -44,23 +78,50 @@ class Pose:
     the rigid-body velocity ``linear_velocity + angular_velocity × (x − T)``.
 
     Fields (every tensor may carry the same leading batch dims ``...``):
-        rotation: (..., 3, 3) rotation matrix R.
+        rotation: (..., 3, 3) rotation matrix R (orthonormal, det +1).
         translation: (..., 3) metres, T.
         linear_velocity: (..., 3) m/s, velocity of the frame's origin; ``None`` = unknown
             (the simulator then takes it from the change of pose over the frame).
         angular_velocity: (..., 3) rad/s, world frame; ``None`` = unknown (likewise).
+
+    Construction validates shapes (the batch dims of all fields agree, both velocities or
+    neither) and values (finite; R a proper rotation within :func:`rotation_tolerance`), and
+    raises ``ValueError`` naming the field. ``check=False`` skips the value checks (no host
+    sync): the simulator's step uses it for poses it derives from validated ones.
     """
 
     rotation: torch.Tensor
     translation: torch.Tensor
     linear_velocity: Optional[torch.Tensor] = None
     angular_velocity: Optional[torch.Tensor] = None
+    check: InitVar[bool] = True
+
+    def __post_init__(self, check: bool) -> None:
+        if not check:
+            return
+        for name in ("rotation", "translation", "linear_velocity", "angular_velocity"):
+            v = getattr(self, name)
+            if v is not None and not isinstance(v, torch.Tensor):
+                raise ValueError(f"Pose.{name} must be a tensor; got {type(v).__name__}")
+        check_rotation(self.rotation, "Pose.rotation")
+        batch = tuple(self.rotation.shape[:-2])
+        for name in ("translation", "linear_velocity", "angular_velocity"):
+            v = getattr(self, name)
+            if v is None:
+                continue
+            if tuple(v.shape) != batch + (3,):
+                raise ValueError(f"Pose.{name} must have shape {batch + (3,)} to match rotation "
+                                 f"{tuple(self.rotation.shape)}; got {tuple(v.shape)}")
+            if not bool(torch.isfinite(v).all()):
+                raise ValueError(f"Pose.{name} contains NaN/Inf")
+        if (self.linear_velocity is None) != (self.angular_velocity is None):
+            raise ValueError("Pose needs both linear_velocity and angular_velocity, or neither")
 
     # -- construction ------------------------------------------------------------------
     @staticmethod
     def identity(device=None, dtype=torch.float32) -> "Pose":
         z = torch.zeros(3, device=device, dtype=dtype)
-        return Pose(torch.eye(3, device=device, dtype=dtype), z, z.clone(), z.clone())
+        return Pose(torch.eye(3, device=device, dtype=dtype), z, z.clone(), z.clone(), check=False)
 
     @staticmethod
     def from_rotvec(rotvec, translation=(0.0, 0.0, 0.0), linear_velocity=None, angular_velocity=None,
@@ -81,14 +142,21 @@ class Pose:
         vel = all(p.has_velocity for p in poses)
         st = lambda name: torch.stack([getattr(p, name) for p in poses])  # noqa: E731
         return Pose(st("rotation"), st("translation"), st("linear_velocity") if vel else None,
-                    st("angular_velocity") if vel else None)
+                    st("angular_velocity") if vel else None, check=False)
 
     def to(self, device=None, dtype=None) -> "Pose":
         f = lambda t: None if t is None else t.to(device=device, dtype=dtype)  # noqa: E731
-        return Pose(f(self.rotation), f(self.translation), f(self.linear_velocity), f(self.angular_velocity))
+        return Pose(f(self.rotation), f(self.translation), f(self.linear_velocity), f(self.angular_velocity),
+                    check=False)
 
     def with_velocity(self, linear_velocity, angular_velocity) -> "Pose":
-        return replace(self, linear_velocity=linear_velocity, angular_velocity=angular_velocity)
+        """The same pose with these velocities ((..., 3) m/s and rad/s, world frame)."""
+        return Pose(self.rotation, self.translation, linear_velocity, angular_velocity, check=False)
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        """The pose's leading batch dims."""
+        return self.rotation.shape[:-2]
 
     @property
     def has_velocity(self) -> bool:
@@ -164,4 +232,19 @@ class Pose:
         else:
             trans = (1 - s) * p0 + s * p1
             lin, ang = (p1 - p0) / dt, rv / dt
-        return Pose(rot, trans, lin, ang)
+        return Pose(rot, trans, lin, ang, check=False)
+
+
+def _pose_flatten(p: Pose):
+    return [p.rotation, p.translation, p.linear_velocity, p.angular_velocity], None
+
+
+def _pose_unflatten(children, _context) -> Pose:
+    return Pose(*children, check=False)
+
+
+pytree.register_pytree_node(Pose, _pose_flatten, _pose_unflatten,
+                            flatten_with_keys_fn=lambda p: ([(pytree.GetAttrKey(k), getattr(p, k)) for k in
+                                                             ("rotation", "translation", "linear_velocity",
+                                                              "angular_velocity")], None))
+

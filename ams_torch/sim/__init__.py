@@ -1,12 +1,14 @@
 """The AMS strand dynamics (SPEC §1–5, §7): parameters, the fixed model, the state, one function
-per physical term, the system assembly, inextensibility, the pure frame step and the
+per physical term, the system assembly, the frame's dynamics, inextensibility, the pure frame step and the
 ``torch.nn.Module`` wrapper :class:`Simulator`.
 
 Imports :mod:`ams_torch.stages`, :mod:`ams_torch.solver` and :mod:`ams_torch.geometry`.
 """
-from ams_torch.sim.integrator import SimulationDiverged
-from ams_torch.sim.model import State
+from ams_torch.sim.model import Coefficients, Model, coefficients
 from ams_torch.sim.params import Params
 from ams_torch.sim.simulator import Simulator
+from ams_torch.sim.state import Config, Control, State
+from ams_torch.sim.step import SimulationDiverged, check_state, step
 
-__all__ = ["Params", "Simulator", "State", "SimulationDiverged"]
+__all__ = ["Params", "Simulator", "Model", "State", "Control", "Config", "step", "check_state", "SimulationDiverged",
+           "Coefficients", "coefficients"]

@@ -3,7 +3,7 @@
 Every function is batched over any leading dims ``...`` (scenes) and strands ``S``:
 positions are ``(..., S, N, 3)`` metres. Forces are in newtons. Where a term is treated
 implicitly, the function also returns the 3×3 stiffness blocks (N/m) that the assembly
-in :mod:`ams_torch.sim.integrator` puts into the strand matrix.
+in :mod:`ams_torch.sim.assembly` puts into the strand matrix.
 """
 from __future__ import annotations
 
@@ -19,6 +19,9 @@ __all__ = [
     "integrity_yield",
     "angular_force",
     "gravity_force",
+    "drag_diagonal",
+    "integrity_ghost_velocity_term",
+    "angular_ghost_velocity_term",
     "safe_normalize",
 ]
 
@@ -137,6 +140,44 @@ def angular_force(x: torch.Tensor, ghost: torch.Tensor, stiffness, reaction: boo
 def gravity_force(mass: torch.Tensor, gravity: torch.Tensor) -> torch.Tensor:
     """Weight ``m g``. mass: (..., S, N) kg; gravity: (3,) m/s². Returns (..., S, N, 3) N."""
     return mass[..., None] * gravity
+
+
+def drag_diagonal(drag_coefficient: torch.Tensor, h) -> torch.Tensor:
+    """Linear drag ``−γ_i v_i`` against still air (SPEC §4 ``G``), taken implicitly: it adds
+    ``Δt' γ_i`` to each particle's mass on the block diagonal (its explicit part is zero).
+
+    drag_coefficient: (S, N) kg/s, γ_i = drag rate × m_i; h: substep Δt', s. Returns (S, N) kg.
+    """
+    return h * drag_coefficient
+
+
+def integrity_ghost_velocity_term(scaled_tangent: torch.Tensor, ghost_velocity: torch.Tensor) -> torch.Tensor:
+    """Right-hand-side term of the integrity spring from the ghosts' motion over the substep,
+    ``Δt'² K w`` (K = −∂T_I/∂x: κ_I I for the Hookean law, the curve's tangent otherwise).
+
+    scaled_tangent: Δt'² K, (..., S, N, 3, 3) kg, or (S, N)/(..., S, N) kg for K = κ_I I;
+    ghost_velocity: (..., S, N, 3) m/s. Returns (..., S, N, 3) kg·m/s.
+    """
+    if scaled_tangent.dim() == ghost_velocity.dim() + 1:
+        return torch.einsum("...ij,...j->...i", scaled_tangent, ghost_velocity)
+    return scaled_tangent[..., None] * ghost_velocity
+
+
+def angular_ghost_velocity_term(scaled_tangent: torch.Tensor, ghost_velocity: torch.Tensor, v: torch.Tensor,
+                                reaction: bool) -> torch.Tensor:
+    """Right-hand-side term of the implicit angular spring from the ghost segments' motion.
+
+    scaled_tangent: Δt'² K, (..., S, N−1, 3, 3) kg, with K = κ_α/|e| (I − êêᵀ) of each segment;
+    ghost_velocity, v: (..., S, N, 3) m/s. As a couple (``reaction``) the segment's two ends get
+    ``∓Δt'² K (w_{i+1} − w_i)``; the one-particle form puts ``Δt'² K (v_i + w_{i+1} − w_i)`` on
+    particle i+1 (its neighbour taken explicitly). Returns (..., S, N, 3) kg·m/s.
+    """
+    dw = ghost_velocity[..., 1:, :] - ghost_velocity[..., :-1, :]
+    if reaction:
+        g = torch.einsum("...ij,...j->...i", scaled_tangent, dw)
+        return F.pad(g, (0, 0, 1, 0)) - F.pad(g, (0, 0, 0, 1))
+    rel = v[..., :-1, :] + dw
+    return F.pad(torch.einsum("...ij,...j->...i", scaled_tangent, rel), (0, 0, 1, 0))
 
 
 def integrity_elongation_law(elongation: torch.Tensor, transition, breaking, soft_ratio):

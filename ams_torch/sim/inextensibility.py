@@ -8,6 +8,8 @@ the non-physical momentum FTL alone would add.
 """
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 
 from ams_torch.sim.forces import safe_normalize
@@ -16,43 +18,40 @@ __all__ = ["follow_the_leader", "max_stretch"]
 
 
 def follow_the_leader(x: torch.Tensor, v: torch.Tensor, edge_rest_length: torch.Tensor,
-                      pinned: torch.Tensor, dt: float, damping: float,
-                      fallback_dir: torch.Tensor | None = None):
+                      pinned: torch.Tensor, dt, damping: float,
+                      fallback_dir: Optional[torch.Tensor] = None):
     """Project every edge back to its rest length, root to tip, and correct the velocities.
 
     Args:
         x: (..., S, N, 3) m, positions after the substeps.
         v: (..., S, N, 3) m/s.
         edge_rest_length: (S, N−1) m.
-        pinned: (N,) bool; pinned particles are never moved (they lead).
+        pinned: (S, N) or (N,) bool; pinned particles are never moved (they lead).
         dt: the frame's length, s (the span over which the corrections happened).
         damping: s ∈ [0, 1] of DFTL (0: plain FTL velocities, 1: full correction).
         fallback_dir: (..., S, N−1, 3) unit directions used where an edge has collapsed
             to zero length (e.g. the rest directions carried by the head); without it
             such an edge stays collapsed. No NaN either way.
     Returns:
-        (x, v): (..., S, N, 3) each; every edge has its rest length to rounding.
+        (x, v): (..., S, N, 3) each; every free edge has its rest length to rounding.
     """
     n = x.shape[-2]
-    pinned_list = pinned.tolist()
+    pinned = pinned if pinned.dim() == 2 else pinned.expand(x.shape[-3], n)
     pts = [x[..., 0, :]]
     corr = [torch.zeros_like(x[..., 0, :])]
     for i in range(1, n):
         xi = x[..., i, :]
-        if pinned_list[i]:
-            pts.append(xi)
-            corr.append(torch.zeros_like(xi))
-            continue
         d, length = safe_normalize(xi - pts[i - 1])
         if fallback_dir is not None:
             d = torch.where((length > 0)[..., None], d, fallback_dir[..., i - 1, :])
-        new = pts[i - 1] + edge_rest_length[..., i - 1, None] * d
+        led = pts[i - 1] + edge_rest_length[..., i - 1, None] * d
+        new = torch.where(pinned[:, i, None], xi, led)
         pts.append(new)
         corr.append(new - xi)
     x_new = torch.stack(pts, -2)
     c = torch.stack(corr, -2)
     c_next = torch.cat((c[..., 1:, :], torch.zeros_like(c[..., :1, :])), -2)
-    free = (~pinned).to(x.dtype)[:, None]
+    free = (~pinned).to(x.dtype)[..., None]
     v_new = v + free * (c - damping * c_next) / dt
     return x_new, v_new
 

@@ -84,7 +84,7 @@ class Params:
         inextensibility: apply follow-the-leader length projection after the substeps.
         collision_inextensibility: with colliders (and ``inextensibility``), this many rounds
             of edge-length restore (follow-the-leader) + push-out after the collision response,
-            so contact does not leave stretched edges (see ``CollisionStage``); 0 = none.
+            so contact does not leave stretched edges (see ``sim.step.collisions``); 0 = none.
         ftl_damping: Müller et al. 2012 velocity-correction factor s_damping ∈ [0, 1].
         max_relative_speed: m/s; a particle faster than this relative to the head's
             rigid motion is reported as divergence.

@@ -1,18 +1,26 @@
-"""The user-facing simulator: a thin ``torch.nn.Module`` over the pure step of :mod:`integrator`."""
+"""The user-facing simulator: a thin ``torch.nn.Module`` over the pure :func:`~ams_torch.sim.step.step`."""
 from __future__ import annotations
 
-from typing import Iterable, Optional, Sequence
+import copy
+from typing import Mapping, Optional, Sequence, Union
 
 import torch
 
-from ams_torch.sim import integrator
-from ams_torch.sim.model import State, build_model
-from ams_torch.stages.collide import Collider, CollisionStage
-from ams_torch.stages.hair_hair import HairHair, build_hair_hair, make_stage
-from ams_torch.sim.params import Params
 from ams_torch.geometry.pose import Pose
+from ams_torch.sim import step as step_mod
+from ams_torch.sim.model import Model, coefficients, sag_free_offset, warn_if_no_sag_offset
+from ams_torch.sim.params import Params
+from ams_torch.sim.state import Config, Control, ExternalForce, State
+from ams_torch.stages.collide import Collider, MeshCollider
+from ams_torch.stages.hair_hair import HairHair, build_hair_hair
 
 __all__ = ["Simulator"]
+
+BACKENDS = ("auto", "torch", "native")
+
+
+def _is_zero(v) -> bool:
+    return not isinstance(v, torch.Tensor) and float(v) == 0.0
 
 
 class Simulator(torch.nn.Module):
@@ -27,6 +35,15 @@ class Simulator(torch.nn.Module):
             ``None`` (default) allocates no grid and runs no grid code.
         colliders: colliders for the hair–solid stage (SPEC §8), e.g. ``MeshCollider``,
             ``SphereCollider``; an empty list or None builds no SDF and runs no collision code.
+            The simulator keeps its own copies, converted to its device and dtype.
+        learnable: names of Params material fields (e.g. ``("integrity_stiffness", "drag")``)
+            to make ``nn.Parameter`` s of the module, for ``torch.optim.Adam(sim.parameters())``.
+        backend: "torch" (the differentiable definition), "native" (the fused kernels, see
+            :mod:`ams_torch.sim.native`) or "auto" (native when built and nothing requires grad).
+
+    The fixed data is ``sim.model`` (a registered submodule: ``.to()``, ``.double()``,
+    ``state_dict()`` work), the frozen settings ``sim.config``; ``sim.step`` builds a
+    :class:`~ams_torch.sim.state.Control` and calls the pure step.
 
     Usage::
 
@@ -38,36 +55,91 @@ class Simulator(torch.nn.Module):
 
     def __init__(self, rest_positions, params: Optional[Params] = None, *, device=None,
                  dtype: torch.dtype = torch.float32, pose: Optional[Pose] = None,
-                 hair_hair: Optional[HairHair] = None, colliders: Optional[Sequence[Collider]] = None):
+                 hair_hair: Optional[HairHair] = None, colliders: Optional[Sequence[Collider]] = None,
+                 learnable: Sequence[str] = (), backend: str = "auto"):
         super().__init__()
-        self.params = params if params is not None else Params()
-        self.device = torch.device(device) if device is not None else torch.device("cpu")
-        self.dtype = dtype
-        self.initial_pose = (pose or Pose.identity()).to(device=self.device, dtype=dtype)
-        self.model = build_model(rest_positions, self.params, device=self.device, dtype=dtype,
-                                 initial_pose=self.initial_pose)
-        self.stages: list = []  # run after inextensibility, in SPEC §4 order
-        m = self.model
+        if backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}; got {backend!r}")
+        params = params if params is not None else Params()
+        if not isinstance(params, Params):
+            raise ValueError(f"params must be an ams_torch.Params; got {type(params).__name__}")
+        self.params = params
+        device = torch.device(device) if device is not None else torch.device("cpu")
+        self.model = Model(rest_positions, params, learnable=learnable, device=device, dtype=dtype)
+        warn_if_no_sag_offset(params)
+        mass = coefficients(self.model).mass.detach()
+        self.model.hair_hair = build_hair_hair(hair_hair, self.model.rest_positions, mass, device=device, dtype=dtype)
+        cols = []
+        for c in colliders or ():
+            if not isinstance(c, Collider):
+                raise ValueError(f"colliders must be ams_torch collider objects; got {type(c).__name__}")
+            c = copy.deepcopy(c).to(device=device, dtype=dtype)
+            if isinstance(c, MeshCollider):
+                c.build()  # the SDF now, not inside the first frame
+            cols.append(c)
+        self.model.colliders = torch.nn.ModuleList(cols)
         self.hair_hair = hair_hair
-        self.hair_hair_grid = build_hair_hair(hair_hair, m.rest_positions, m.particle_mass,
-                                              device=self.device, dtype=dtype)
-        if self.hair_hair_grid is not None:
-            self.stages.append(make_stage(self.hair_hair_grid, m.particle_mass, ~m.pinned))
-        self.colliders = list(colliders or [])
-        restore = None
-        if self.params.inextensibility and self.params.collision_inextensibility:
-            restore = lambda x, v, pose, dt: integrator.inextensibility(m, self.params, x, v, pose, dt)  # noqa: E731
-        self.collision_stage = CollisionStage(self.colliders, free=~m.pinned, restore_lengths=restore,
-                                              restore_rounds=self.params.collision_inextensibility) \
-            if self.colliders else None
-        if self.collision_stage is not None:
-            self.stages.append(self.collision_stage)
+        self.requested_backend = backend
+        self.config = self._make_config(params, tuple(learnable), hair_hair is not None, cols, backend)
+        init = (pose or Pose.identity(dtype=dtype)).to(device=device, dtype=dtype)
+        if init.rotation.shape != (3, 3):
+            raise ValueError(f"pose (the head pose at t = 0) must be a single pose; got rotation "
+                             f"{tuple(init.rotation.shape)} (give a batch of poses to initial_state)")
+        z = torch.zeros(3, device=device, dtype=dtype)
+        self.register_buffer("initial_rotation", init.rotation.clone())
+        self.register_buffer("initial_translation", init.translation.clone())
+        self.register_buffer("initial_linear_velocity", (init.linear_velocity if init.has_velocity else z).clone())
+        self.register_buffer("initial_angular_velocity", (init.angular_velocity if init.has_velocity else z).clone())
+        self._frames = 0  # calls of step, to run the divergence guard every check_every frames
+
+    @staticmethod
+    def _make_config(params: Params, learnable: tuple, hair_hair: bool, cols: list, backend: str) -> Config:
+        """Static choices: terms that are exactly zero (and not learnable) are not computed."""
+        off = lambda name: _is_zero(getattr(params, name)) and name not in learnable  # noqa: E731
+        integrity = "none" if off("integrity_stiffness") else params.integrity_model
+        return Config(dt=float(params.dt), substeps=int(params.substeps), integrity_model=integrity,
+                      angular=not off("angular_stiffness"), angular_reaction=params.angular_reaction,
+                      implicit_angular=params.implicit_angular, geometric_stiffness=params.geometric_stiffness,
+                      inextensibility=params.inextensibility, ftl_damping=float(params.ftl_damping),
+                      collision_rounds=int(params.collision_inextensibility),
+                      projection_iterations=tuple(int(c.projection_iterations) for c in cols),
+                      follow_head=tuple(bool(c.follow_head) for c in cols), hair_hair=hair_hair,
+                      max_relative_speed=float(params.max_relative_speed),
+                      backend="torch" if backend == "auto" else backend)
+
+    # -- properties ------------------------------------------------------------------------
+    @property
+    def device(self) -> torch.device:
+        return self.model.rest_positions.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.model.rest_positions.dtype
+
+    @property
+    def initial_pose(self) -> Pose:
+        """The head pose at t = 0 (with velocities)."""
+        return Pose(self.initial_rotation, self.initial_translation, self.initial_linear_velocity,
+                    self.initial_angular_velocity, check=False)
+
+    @property
+    def colliders(self) -> list:
+        """The simulator's colliders (its own copies, on its device and dtype)."""
+        return list(self.model.colliders)
+
+    @property
+    def hair_hair_grid(self):
+        """The hair–hair grid (fixed data of the stage), or None when the stage is off."""
+        return self.model.hair_hair
 
     # -- state ---------------------------------------------------------------------------
     def initial_state(self, pose: Optional[Pose] = None) -> State:
         """The groom at rest in its grown shape, moving rigidly with ``pose`` (default: the
         simulator's initial pose). The pose may carry scene batch dims (B, 3, 3): the state is
-        then (B, S, N, 3). Ghosts get the sag-free offset (SPEC §5) when ``params.sag_free``."""
+        then (B, S, N, 3). Ghosts get this scene's sag-free offset (SPEC §5) when ``params.sag_free``,
+        computed here once (gravity seen in the head frame of ``pose``)."""
+        if pose is not None and not isinstance(pose, Pose):
+            raise ValueError(f"pose must be an ams_torch.Pose; got {type(pose).__name__}")
         pose = (pose or self.initial_pose).to(device=self.device, dtype=self.dtype)
         if not pose.has_velocity:
             z = torch.zeros_like(pose.translation)
@@ -77,52 +149,108 @@ class Simulator(torch.nn.Module):
         rest = m.rest_positions.expand(batch + m.rest_positions.shape)
         x = pose.to_world(rest)
         v = pose.velocity_at(x)
-        ghost_rest = rest
-        kappa = self.params.integrity_stiffness
-        if self.params.sag_free and not (not isinstance(kappa, torch.Tensor) and float(kappa) == 0.0):
-            k = torch.as_tensor(kappa, dtype=self.dtype, device=self.device)
-            k = k[..., None] if k.dim() > 0 else k
-            offset_world = (-m.particle_mass[..., None] * m.gravity / k).expand_as(rest)
-            ghost_rest = rest + pose.unrotate(offset_world)
-        return State(x=x, v=v, ghost_rest=ghost_rest.clone(), pose=pose)
+        if self.params.sag_free:
+            c = coefficients(m)
+            offset = pose.unrotate(sag_free_offset(c.mass, m.gravity, c.integrity).expand_as(rest))
+        else:
+            offset = torch.zeros_like(rest)
+        dev = self.device
+        return State(x=x, v=v, ghost_rest=rest + offset, sag_offset=offset, pose=pose,
+                     time=torch.zeros((), device=dev, dtype=self.dtype),
+                     frame=torch.zeros((), device=dev, dtype=torch.int64),
+                     diverged_frame=torch.full((), -1, device=dev, dtype=torch.int64),
+                     diverged_input=torch.zeros((), device=dev, dtype=torch.bool))
 
     # -- dynamics -----------------------------------------------------------------------
-    def step(self, state: State, pose: Optional[Pose] = None, external_force=None,
-             collider_poses=None) -> State:
+    def control(self, state: State, pose: Optional[Pose] = None, *,
+                collider_poses: Union[None, Sequence[Optional[Pose]], Mapping[int, Pose]] = None,
+                external_force: ExternalForce = None) -> Control:
+        """Validate a frame's inputs against ``state`` and this simulator, and make its
+        :class:`~ams_torch.sim.state.Control`. Raises ``ValueError`` naming the argument and the
+        expected shape or dtype."""
+        if not isinstance(state, State):
+            raise ValueError(f"state must be an ams_torch State (from initial_state or step); got "
+                             f"{type(state).__name__}")
+        s, n = self.model.num_strands, self.model.num_particles
+        x, v = state.x, state.v
+        if x.shape[-3:] != (s, n, 3) or v.shape != x.shape:
+            raise ValueError(f"state.x/v must have shape (..., {s}, {n}, 3); got x {tuple(x.shape)}, v {tuple(v.shape)}")
+        if x.dtype != self.dtype or v.dtype != self.dtype:
+            raise ValueError(f"state is {x.dtype} but the simulator is {self.dtype}: use initial_state() of this "
+                             f"simulator, or convert the simulator (sim.double()/sim.float())")
+        if x.device != self.device:
+            raise ValueError(f"state is on {x.device} but the simulator is on {self.device}")
+        batch = tuple(x.shape[:-3])
+        if pose is not None:
+            if not isinstance(pose, Pose):
+                raise ValueError(f"pose must be an ams_torch.Pose or None; got {type(pose).__name__}")
+            if tuple(pose.batch_shape) not in ((), batch):
+                raise ValueError(f"pose has batch shape {tuple(pose.batch_shape)} but the state's scenes are "
+                                 f"{batch}: give rotation (3, 3) or {batch + (3, 3)}")
+            pose = pose.to(device=self.device, dtype=self.dtype)
+        if isinstance(external_force, torch.Tensor):
+            try:
+                ok = torch.broadcast_shapes(external_force.shape, x.shape) == x.shape
+            except RuntimeError:
+                ok = False
+            if not ok:
+                raise ValueError(f"external_force must have shape {tuple(x.shape)} (..., S, N, 3) newtons, or "
+                                 f"broadcast to it; got {tuple(external_force.shape)}")
+            if not external_force.is_floating_point():
+                raise ValueError(f"external_force must be a floating-point tensor; got {external_force.dtype}")
+            external_force = external_force.to(device=self.device, dtype=self.dtype)
+        elif external_force is not None and not callable(external_force):
+            raise ValueError(f"external_force must be a tensor, a callable f(x, v, t) or None; got "
+                             f"{type(external_force).__name__}")
+        return Control(pose=pose, collider_poses=self._collider_poses(collider_poses), time=state.time,
+                       external_force=external_force)
+
+    def _collider_poses(self, collider_poses) -> tuple:
+        count = len(self.model.colliders)
+        if collider_poses is None:
+            return ()
+        if count == 0:
+            raise ValueError("collider_poses given but the simulator has no colliders")
+        if isinstance(collider_poses, Mapping):
+            bad = [i for i in collider_poses if not (isinstance(i, int) and 0 <= i < count)]
+            if bad:
+                raise ValueError(f"collider_poses: index {bad[0]!r} out of range (have {count} colliders)")
+            collider_poses = [collider_poses.get(i) for i in range(count)]
+        collider_poses = list(collider_poses)
+        if len(collider_poses) != count:
+            raise ValueError(f"got {len(collider_poses)} collider poses for {count} colliders")
+        out = []
+        for i, p in enumerate(collider_poses):
+            if p is not None and not isinstance(p, Pose):
+                raise ValueError(f"collider_poses[{i}] must be an ams_torch.Pose or None; got {type(p).__name__}")
+            out.append(None if p is None else p.to(device=self.device, dtype=self.dtype))
+        return tuple(out)
+
+    def step(self, state: State, pose: Optional[Pose] = None, *, collider_poses=None,
+             external_force: ExternalForce = None, timer=None) -> State:
         """Advance one frame of ``params.dt`` seconds.
 
         Args:
             state: current state.
             pose: head pose at the end of the frame (None: the head stays still).
-            external_force: (..., S, N, 3) newtons, or ``f(x, v, t) -> force``.
-            collider_poses: new poses for the colliders, in force from this frame on (a list
-                aligned with ``colliders``; None entries keep a collider's pose). They replace
-                each collider's ``pose``: world poses, or poses relative to the head for colliders
-                with ``follow_head=True`` (see ``colliders.resolve_world_poses``).
+            collider_poses: poses for the colliders at the end of the frame (a list aligned with
+                ``colliders``, or ``{index: Pose}``; None entries keep a collider's own pose):
+                world poses, or relative to the head for colliders with ``follow_head=True``.
+            external_force: (..., S, N, 3) newtons, or ``f(x, v, t) -> force`` (t: 0-d tensor, s).
+            timer: optional per-stage context-manager factory (see :func:`ams_torch.sim.step.step`).
         Returns:
             the new :class:`State` (``.x``, ``.v``: (..., S, N, 3)).
         Raises:
-            SimulationDiverged: the state became non-finite or exploded (names frame and strands).
+            ValueError: an input of the wrong type, shape, dtype or device (named).
+            SimulationDiverged: the divergence guard (every ``params.check_every`` frames) found
+                non-finite or exploding particles (names the frame and strands).
         """
-        if collider_poses is not None:
-            if self.collision_stage is None:
-                raise ValueError("collider_poses given but the simulator has no colliders")
-            self.collision_stage.collider_poses = collider_poses
-        return integrator.step(self.model, self.params, state, pose, external_force, self.stages)
+        control = self.control(state, pose, collider_poses=collider_poses, external_force=external_force)
+        new = step_mod.step(self.model, state, control, self.config, timer)
+        self._frames += 1
+        every = self.params.check_every
+        if every and self._frames % every == 0:
+            step_mod.check_state(new, self.config)
+        return new
 
     forward = step
-
-    def rollout(self, state: State, poses: Iterable[Optional[Pose]], external_force=None,
-                progress: bool = False) -> tuple:
-        """Run one step per pose. Returns (final state, positions (F, ..., S, N, 3))."""
-        poses = list(poses)
-        it: Sequence = poses
-        if progress:
-            from tqdm.auto import tqdm
-
-            it = tqdm(poses, desc="simulating", unit="frame")
-        xs = []
-        for pose in it:
-            state = self.step(state, pose, external_force)
-            xs.append(state.x)
-        return state, torch.stack(xs) if xs else state.x.new_zeros((0,) + tuple(state.x.shape))

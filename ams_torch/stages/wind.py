@@ -92,13 +92,15 @@ class Wind:
     def is_zero(self) -> bool:
         return float(self.speed) == 0.0 and float(self.turbulence) == 0.0
 
-    def gust_signal(self, t: float) -> float:
-        """g(t) ∈ [−1, 1], dimensionless."""
+    def gust_signal(self, t):
+        """g(t) ∈ [−1, 1], dimensionless; t in seconds, a number or a tensor (then a tensor)."""
         w = 2 * math.pi * self.gust_frequency
-        return (math.sin(w * t) + 0.5 * math.sin(2.3 * w * t + 1.3)) / 1.5
+        sin = torch.sin if isinstance(t, torch.Tensor) else math.sin
+        return (sin(w * t) + 0.5 * sin(2.3 * w * t + 1.3)) / 1.5
 
-    def velocity(self, x: torch.Tensor, t: float) -> torch.Tensor:
-        """Air velocity u(x, t), (..., 3) m/s, at world points x (..., 3) m and time t s."""
+    def velocity(self, x: torch.Tensor, t) -> torch.Tensor:
+        """Air velocity u(x, t), (..., 3) m/s, at world points x (..., 3) m and time t s (a number
+        or a 0-d tensor)."""
         base = torch.as_tensor(self.direction, dtype=x.dtype, device=x.device) \
             * (float(self.speed) * (1.0 + float(self.gust) * self.gust_signal(t)))
         u = base.expand_as(x)
@@ -110,15 +112,14 @@ class Wind:
 
     def bind(self, sim):
         """The external-force callable ``f(x, v, t) -> (..., S, N, 3)`` N for ``sim`` (a
-        :class:`~ams_torch.Simulator`), with c = ``coefficient`` or γ m of ``sim``."""
-        if self.coefficient is not None:
-            c = self.coefficient
-        else:
-            c = sim.params.drag * sim.model.particle_mass  # (S, N) kg/s
+        :class:`~ams_torch.Simulator`), with c = ``coefficient`` or γ m of ``sim``'s model (read
+        at every call, so learnable drag and mass are seen as they are)."""
+        model = sim.model
 
-        def force(x: torch.Tensor, v: torch.Tensor, t: float) -> torch.Tensor:
+        def force(x: torch.Tensor, v: torch.Tensor, t) -> torch.Tensor:
             if self.is_zero:
                 return torch.zeros_like(x)
+            c = self.coefficient if self.coefficient is not None else model.drag * model.particle_mass  # kg/s
             return wind_force(self.velocity(x, t), c)
 
         return force

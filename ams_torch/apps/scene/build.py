@@ -126,11 +126,7 @@ def build(scene: dict, device=None, dtype=torch.float32) -> BuiltScene:
     t1 = time.perf_counter()
     motion = make_motion(scene.get("motion"))
     sim = Simulator(rest, params, device=device, dtype=dtype, pose=motion(0.0, dtype=dtype), hair_hair=hh,
-                    colliders=cols or None)
-    if sim.collision_stage is not None:
-        for c in cols:
-            if hasattr(c, "sdf"):
-                c.sdf  # build (or load) the SDF now, not inside the first frame
+                    colliders=cols or None)  # builds (or loads) the SDFs now, not inside the first frame
     times["simulator"] = time.perf_counter() - t1
     wind = Wind(**scene["wind"]) if "wind" in scene else None
     return BuiltScene(scene, sim, motion, wind, col_motions, mesh, rest, times, groom)

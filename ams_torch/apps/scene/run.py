@@ -1,6 +1,7 @@
 """Running a built scene frame by frame: positions, poses and per-stage timings."""
 from __future__ import annotations
 
+import contextlib
 import time
 from typing import Optional
 
@@ -25,30 +26,21 @@ def simulate(run: BuiltScene, frames: Optional[int] = None, progress: bool = Fal
     state = sim.initial_state()
     timings = {"solve": 0.0}
     sync = (lambda: torch.cuda.synchronize()) if sim.device.type == "cuda" else (lambda: None)  # noqa: E731
-
-    def timed(name, stage):
+    staged = (["hair_hair"] if sim.hair_hair_grid is not None else []) + (["collisions"] if sim.colliders else [])
+    for name in staged:
         timings[name] = 0.0
 
-        def run_stage(*args):
-            sync()
-            t = time.perf_counter()
-            with torch.profiler.record_function(f"ams_torch.{name}"):
-                out = stage(*args)
-            sync()
+    @contextlib.contextmanager
+    def timer(name):
+        """Wall time of one stage of the step (device synchronised), under its profiler label."""
+        sync()
+        t = time.perf_counter()
+        with torch.profiler.record_function(f"ams_torch.{name}"):
+            yield
+        sync()
+        if name in timings:
             timings[name] += time.perf_counter() - t
-            return out
 
-        return run_stage
-
-    def wrap_stages():
-        names = []
-        if sim.hair_hair_grid is not None:
-            names.append("hair_hair")
-        if sim.collision_stage is not None:
-            names.append("collisions")
-        sim.stages = [timed(n, st) for n, st in zip(names, sim.stages)]
-
-    wrap_stages()
     wind = None
     if run.wind is not None and not run.wind.is_zero:
         timings["wind"] = 0.0
@@ -62,7 +54,7 @@ def simulate(run: BuiltScene, frames: Optional[int] = None, progress: bool = Fal
 
     trim = scene.get("trim")
     xs, rots, trans, crots, ctrans = [], [], [], [], []
-    specs = scene["colliders"] if sim.collision_stage is not None else []
+    specs = scene["colliders"] if sim.colliders else []
     scene_motions = run.collider_motions[len(run.collider_motions) - len(specs):]
     it = range(frames)
     if progress:
@@ -74,7 +66,6 @@ def simulate(run: BuiltScene, frames: Optional[int] = None, progress: bool = Fal
         if trim is not None and k + 1 == trim["frame"]:
             t0 = time.perf_counter()
             state, sim = _apply_trim(run, state, trim)
-            wrap_stages()
             if wind is not None:
                 raw = run.wind.bind(sim)
             timings["trim"] = time.perf_counter() - t0
@@ -86,7 +77,7 @@ def simulate(run: BuiltScene, frames: Optional[int] = None, progress: bool = Fal
         sync()
         t0 = time.perf_counter()
         with torch.profiler.record_function("ams_torch.step"):
-            state = sim.step(state, pose, external_force=wind, collider_poses=cposes)
+            state = sim.step(state, pose, external_force=wind, collider_poses=cposes, timer=timer)
         sync()
         wall += time.perf_counter() - t0
         xs.append(state.x.detach().to("cpu", torch.float32).numpy())

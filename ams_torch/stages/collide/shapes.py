@@ -1,41 +1,34 @@
-"""Hair–solid collisions (SPEC §8): colliders with a signed distance, and the contact response.
+"""Collider shapes (SPEC §8): solids given by a signed distance in their local frame.
 
 Every collider describes a solid by its signed distance σ (metres, negative inside) and outward
 unit normal n = ∇σ/|∇σ| in its own local frame, a rigid ``pose`` (with velocities) and a Coulomb
 friction coefficient ``friction`` (μ). A collider with ``follow_head=True`` is attached to the head:
 its ``pose`` is relative to the head frame and it moves with the head; otherwise ``pose`` is in
-the world. :func:`resolve_world_poses` turns both kinds into world poses for a frame, and
-:func:`collide` applies the response to the particles.
+the world. :func:`~ams_torch.stages.collide.resolve_world_poses` turns both kinds into world
+poses for a frame, and :func:`~ams_torch.stages.collide.collide` applies the response.
+
+Colliders are ``torch.nn.Module`` s: their geometry, friction and default pose are buffers, so a
+simulator that registers them moves them with ``.to()`` / ``.double()``.
 
 Analytic colliders (:class:`SphereCollider`, :class:`HollowSphereCollider`,
 :class:`CapsuleCollider`, :class:`PlaneCollider`) evaluate σ exactly; :class:`MeshCollider`
-samples an :class:`~ams_torch.geometry.sdf.SDFGrid` built from a closed mesh (built on first use, cached
-on disk), so a scene without colliders never builds a grid.
+samples an :class:`~ams_torch.geometry.sdf.SDFGrid` built from a triangle mesh (open meshes too: the
+sign comes from the generalised winding number), built by :meth:`MeshCollider.build` (the simulator
+calls it once; cached on disk), so a scene without colliders never builds a grid.
 """
 from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple, Union
+from typing import Optional, Tuple
 
 import torch
-import torch.nn.functional as F
 
 from ams_torch.geometry.pose import Pose
 from ams_torch.geometry.sdf import SDFGrid
 
-__all__ = [
-    "Collider",
-    "SphereCollider",
-    "HollowSphereCollider",
-    "CapsuleCollider",
-    "PlaneCollider",
-    "MeshCollider",
-    "collide",
-    "collider_distances",
-    "resolve_world_poses",
-    "CollisionStage",
-]
+__all__ = ["Collider", "SphereCollider", "HollowSphereCollider", "CapsuleCollider", "PlaneCollider", "MeshCollider",
+           "DEFAULT_FRICTION"]
 
 DEFAULT_FRICTION = 0.5
 
@@ -65,17 +58,17 @@ def _unit_or(d: torch.Tensor, fallback: torch.Tensor) -> Tuple[torch.Tensor, tor
 _UP = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
 
 
-class Collider(ABC):
+class Collider(torch.nn.Module, ABC):
     """Base class: a rigid solid given by a signed distance in its local frame.
 
     Attributes:
-        friction: Coulomb coefficient μ ≥ 0 (dimensionless).
-        pose: :class:`~ams_torch.geometry.pose.Pose` of the collider's local frame, relative to the head
-            when ``follow_head`` else in the world (default identity, static). Its velocities (if
-            any) are the collider's own motion; ``None`` velocities mean static.
+        friction: () buffer, Coulomb coefficient μ ≥ 0 (dimensionless).
+        pose: :class:`~ams_torch.geometry.pose.Pose` of the collider's local frame, relative to the
+            head when ``follow_head`` else in the world (default identity, static), kept as buffers
+            (``pose_rotation``, ``pose_translation``, ``pose_linear_velocity``,
+            ``pose_angular_velocity``). Per-frame poses are given to the step instead (``Control``).
         follow_head: whether the collider moves rigidly with the head.
-        projection_iterations: at most this many push-out passes per frame (1 suffices for
-            exact σ); passes stop early once no contact particle is inside.
+        projection_iterations: push-out passes per contact response (1 suffices for exact σ).
 
     Subclasses implement :meth:`distance_and_normal` (and may override :meth:`distance`).
     """
@@ -83,11 +76,35 @@ class Collider(ABC):
     projection_iterations: int = 1
 
     def __init__(self, friction: float = DEFAULT_FRICTION, pose: Optional[Pose] = None, follow_head: bool = False):
-        if friction < 0:
-            raise ValueError("friction must be ≥ 0")
-        self.friction = float(friction)
-        self.pose = pose
+        super().__init__()
+        if not (isinstance(friction, (int, float)) and math.isfinite(friction) and friction >= 0):
+            raise ValueError(f"friction must be a finite number ≥ 0; got {friction!r}")
+        self.register_buffer("friction", torch.tensor(float(friction), dtype=torch.float64))
         self.follow_head = bool(follow_head)
+        self.has_pose = pose is not None
+        self.pose = pose if pose is not None else Pose.identity(dtype=torch.float64)
+
+    @property
+    def pose(self) -> Pose:
+        """The collider's own pose (see the class docstring)."""
+        return Pose(self.pose_rotation, self.pose_translation, self.pose_linear_velocity, self.pose_angular_velocity,
+                    check=False)
+
+    @pose.setter
+    def pose(self, pose: Optional[Pose]) -> None:
+        if pose is None:
+            pose = Pose.identity(dtype=torch.float64)
+        if not isinstance(pose, Pose) or pose.rotation.shape != (3, 3):
+            raise ValueError("a collider's own pose must be a single Pose (rotation (3, 3)); give per-frame or "
+                             "batched poses to the step (collider_poses)")
+        z = torch.zeros(3, dtype=pose.rotation.dtype, device=pose.rotation.device)
+        for name, t in (("rotation", pose.rotation), ("translation", pose.translation),
+                        ("linear_velocity", pose.linear_velocity if pose.has_velocity else z),
+                        ("angular_velocity", pose.angular_velocity if pose.has_velocity else z)):
+            self.register_buffer(f"pose_{name}", torch.as_tensor(t).detach().clone())
+
+    def _vec_buffer(self, name: str, value) -> None:
+        self.register_buffer(name, _vec(value, name))
 
     @abstractmethod
     def distance_and_normal(self, points: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -96,14 +113,6 @@ class Collider(ABC):
     def distance(self, points: torch.Tensor) -> torch.Tensor:
         """Local points (..., 3) metres → signed distance σ (...) metres, negative inside."""
         return self.distance_and_normal(points)[0]
-
-    def contact_mask(self, x: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
-        """Broad phase of :func:`collide`: which world points are inside (σ < 0).
-
-        x: (B, K, 3) world points, metres; rotation (B, 3, 3), translation (B, 3): the world
-        pose. Returns (B, K) bool. Subclasses may fuse the transform into the test.
-        """
-        return self.distance(_world_to_local(x, rotation, translation)) < 0
 
 
 class SphereCollider(Collider):
@@ -114,7 +123,8 @@ class SphereCollider(Collider):
         super().__init__(friction, pose, follow_head)
         if radius <= 0:
             raise ValueError("radius must be positive")
-        self.center, self.radius = _vec(center, "center"), float(radius)
+        self._vec_buffer("center", center)
+        self.radius = float(radius)
 
     def distance_and_normal(self, points):
         n, length = _unit_or(points - _like(self.center, points), _UP)
@@ -123,12 +133,8 @@ class SphereCollider(Collider):
     def distance(self, points):
         return (points - _like(self.center, points)).norm(dim=-1) - self.radius
 
-    def contact_mask(self, x, rotation, translation):
-        centre = (rotation @ _like(self.center, x)[:, None])[..., 0] + translation  # world (B, 3)
-        return (x - centre[:, None, :]).square().sum(-1) < self.radius ** 2
-
     def __repr__(self):
-        return f"SphereCollider(center={self.center.tolist()}, radius={self.radius}, friction={self.friction})"
+        return f"SphereCollider(center={self.center.tolist()}, radius={self.radius}, friction={float(self.friction)})"
 
 
 class CapsuleCollider(Collider):
@@ -139,7 +145,9 @@ class CapsuleCollider(Collider):
         super().__init__(friction, pose, follow_head)
         if radius <= 0:
             raise ValueError("radius must be positive")
-        self.a, self.b, self.radius = _vec(a, "a"), _vec(b, "b"), float(radius)
+        self._vec_buffer("a", a)
+        self._vec_buffer("b", b)
+        self.radius = float(radius)
 
     def distance_and_normal(self, points):
         a, b = _like(self.a, points), _like(self.b, points)
@@ -156,7 +164,7 @@ class CapsuleCollider(Collider):
 
     def __repr__(self):
         return (f"CapsuleCollider(a={self.a.tolist()}, b={self.b.tolist()}, radius={self.radius}, "
-                f"friction={self.friction})")
+                f"friction={float(self.friction)})")
 
 
 class PlaneCollider(Collider):
@@ -168,17 +176,18 @@ class PlaneCollider(Collider):
         nrm = _vec(normal, "normal")
         if nrm.norm() == 0:
             raise ValueError("plane normal must be non-zero")
-        self.point, self.normal = _vec(point, "point"), nrm / nrm.norm()
+        self._vec_buffer("point", point)
+        self.register_buffer("normal", nrm / nrm.norm())
 
     def distance_and_normal(self, points):
         n = _like(self.normal, points)
         return _dot(points - _like(self.point, points), n), n.expand_as(points)
 
     def distance(self, points):
-        return points @ _like(self.normal, points) - float(self.point @ self.normal)
+        return _dot(points - _like(self.point, points), _like(self.normal, points))
 
     def __repr__(self):
-        return f"PlaneCollider(point={self.point.tolist()}, normal={self.normal.tolist()}, friction={self.friction})"
+        return f"PlaneCollider(point={self.point.tolist()}, normal={self.normal.tolist()}, friction={float(self.friction)})"
 
 
 class HollowSphereCollider(Collider):
@@ -204,20 +213,22 @@ class HollowSphereCollider(Collider):
             raise ValueError("need radius > 0 and 0 < thickness < 2 radius")
         if cut_height is not None and not -radius < cut_height < radius:
             raise ValueError("cut_height must lie in (−radius, radius)")
-        self.center, self.radius, self.thickness = _vec(center, "center"), float(radius), float(thickness)
+        self._vec_buffer("center", center)
+        self.radius, self.thickness = float(radius), float(thickness)
         self.cut_height = None if cut_height is None else float(cut_height)
         ax = _vec(axis, "axis")
         if ax.norm() == 0:
             raise ValueError("axis must be non-zero")
-        self.axis = ax / ax.norm()
+        ax = ax / ax.norm()
+        self.register_buffer("axis", ax)
         # orthonormal frame (e1, axis, e2): q = (p·e1, p·axis, p·e2) puts the opening along +y
         helper = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
-        if abs(float(self.axis[0])) > 0.9:
+        if abs(float(ax[0])) > 0.9:
             helper = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
-        e1 = torch.linalg.cross(helper, self.axis)
+        e1 = torch.linalg.cross(helper, ax)
         e1 = e1 / e1.norm()
-        e2 = torch.linalg.cross(e1, self.axis)
-        self._frame = torch.stack((e1, self.axis, e2), 0)  # rows: local axes of the shell
+        e2 = torch.linalg.cross(e1, ax)
+        self.register_buffer("_frame", torch.stack((e1, ax, e2), 0))  # rows: local axes of the shell
 
     def distance_and_normal(self, points):
         frame = _like(self._frame, points)
@@ -247,23 +258,25 @@ class HollowSphereCollider(Collider):
     def __repr__(self):
         return (f"HollowSphereCollider(center={self.center.tolist()}, radius={self.radius}, "
                 f"thickness={self.thickness}, cut_height={self.cut_height}, axis={self.axis.tolist()}, "
-                f"friction={self.friction})")
+                f"friction={float(self.friction)})")
 
 
 class MeshCollider(Collider):
-    """A closed triangle mesh (or a ready :class:`~ams_torch.geometry.sdf.SDFGrid`) as a collider.
+    """A triangle mesh (or a ready :class:`~ams_torch.geometry.sdf.SDFGrid`) as a collider.
 
     Args:
-        mesh: watertight ``trimesh.Trimesh`` in metres (its own frame = the collider's local
-            frame), or an ``SDFGrid``.
+        mesh: ``trimesh.Trimesh`` in metres (its own frame = the collider's local frame), or an
+            ``SDFGrid``. It need not be closed: the SDF's sign comes from the generalised winding
+            number, so a head open at the neck collides correctly (SPEC §14).
         resolution: SDF samples along the longest side of the padded box (voxel ≈ box/resolution).
         padding: margin around the mesh box, metres (default: see ``SDFGrid.from_mesh``).
         follow_head: default True: the mesh is the head (``pose`` relative to the head frame).
-        projection_iterations: at most this many push-out passes (default 4: grid normals are
+        projection_iterations: push-out passes per response (default 4: grid normals are
             approximate; measured on the default head at 64³, four passes leave < 0.01 voxel of
             penetration even for particles starting 2 cm deep).
 
-    The grid is built (or read from the disk cache) on first use; :attr:`sdf` forces it.
+    The grid is built (or read from the disk cache) by :meth:`build` or on first use of :attr:`sdf`;
+    ``.to()`` / ``.double()`` convert it with the module.
     """
 
     projection_iterations = 4
@@ -276,318 +289,39 @@ class MeshCollider(Collider):
         self._grid: Optional[SDFGrid] = mesh if isinstance(mesh, SDFGrid) else None
         if self._grid is None and not (hasattr(mesh, "vertices") and hasattr(mesh, "faces")):
             raise TypeError("MeshCollider needs a trimesh.Trimesh (vertices, faces) or an SDFGrid")
-        if self.mesh is not None and hasattr(self.mesh, "is_watertight") and not self.mesh.is_watertight:
-            raise ValueError("MeshCollider: the mesh is not watertight; load it with "
-                             "ams_torch.geometry.load_mesh(path, repair=True) or close it first")
+        if self.mesh is not None and len(self.mesh.faces) == 0:
+            raise ValueError("MeshCollider: the mesh has no faces")
+        if self.mesh is not None and not bool(torch.isfinite(torch.as_tensor(self.mesh.vertices)).all()):
+            raise ValueError("MeshCollider: the mesh has NaN/Inf vertices")
         self.resolution, self.padding = int(resolution), padding
         self.projection_iterations = int(projection_iterations)
-        self._converted: Dict[Tuple[torch.device, torch.dtype], SDFGrid] = {}
+
+    def build(self) -> "MeshCollider":
+        """Build (or load from the disk cache) the SDF grid now; returns self."""
+        if self._grid is None:
+            probe = self.friction
+            self._grid = SDFGrid.from_mesh(self.mesh, resolution=self.resolution, padding=self.padding).to(
+                probe.device, probe.dtype)
+        return self
 
     @property
     def sdf(self) -> SDFGrid:
-        """The collider's SDF grid (float32, CPU), built or loaded on first access."""
-        if self._grid is None:
-            self._grid = SDFGrid.from_mesh(self.mesh, resolution=self.resolution, padding=self.padding)
-        return self._grid
+        """The collider's SDF grid (on the module's device and dtype), built on first access."""
+        return self.build()._grid
 
-    def _grid_for(self, p: torch.Tensor) -> SDFGrid:
-        key = (p.device, p.dtype)
-        if key not in self._converted:
-            self._converted[key] = self.sdf.to(p.device, p.dtype)
-        return self._converted[key]
+    def _apply(self, fn, *args, **kwargs):
+        out = super()._apply(fn, *args, **kwargs)
+        if self._grid is not None:  # the grid follows the module's device/dtype
+            probe = fn(torch.zeros((), dtype=self._grid.dtype, device=self._grid.device))
+            self._grid = self._grid.to(probe.device, probe.dtype)
+        return out
 
     def distance(self, points):
-        return self._grid_for(points).distance(points)
-
-    def contact_mask(self, x, rotation, translation):
-        # world → grid_sample coordinates in one affine map; points outside the grid's box are
-        # outside the mesh (the box is padded), so the clamped sample alone decides the sign.
-        grid = self._grid_for(x)
-        scale = 2.0 / (grid.upper - grid.origin)
-        lin = rotation * scale  # (B, 3, 3): columns scaled, coords = x R diag(s) + c
-        off = ((-translation[:, None, :] @ rotation)[:, 0] - grid.origin) * scale - 1.0  # (B, 3)
-        if x.shape[0] == 1:
-            coords = torch.addmm(off, x[0], lin[0])[None]
-        else:
-            coords = torch.baddbmm(off[:, None, :], x, lin)
-        coords = coords.clamp_(-1.0, 1.0).reshape(1, 1, 1, -1, 3)
-        sigma = F.grid_sample(grid._volume[:, :1], coords, mode="bilinear", padding_mode="border",
-                              align_corners=True)
-        return sigma.reshape(x.shape[:2]) < 0
+        return self.sdf.distance(points)
 
     def distance_and_normal(self, points):
-        return self._grid_for(points).distance_and_normal(points)
+        return self.sdf.distance_and_normal(points)
 
     def __repr__(self):
         grid = repr(self._grid) if self._grid is not None else f"unbuilt, resolution={self.resolution}"
-        return f"MeshCollider({grid}, follow_head={self.follow_head}, friction={self.friction})"
-
-
-# ---------------------------------------------------------------------------------------
-# poses
-# ---------------------------------------------------------------------------------------
-def _compose(head: Pose, rel: Pose) -> Pose:
-    """World pose of a frame attached to ``head`` at relative pose ``rel`` (velocities composed)."""
-    rel = rel.to(device=head.rotation.device, dtype=head.rotation.dtype)
-    rot = head.rotation @ rel.rotation
-    arm = (head.rotation @ rel.translation[..., None])[..., 0]  # origin offset in world axes
-    trans = arm + head.translation
-    if not head.has_velocity and not rel.has_velocity:
-        return Pose(rot, trans)
-    zero = torch.zeros_like(trans)
-    hv = head.linear_velocity if head.has_velocity else zero
-    hw = head.angular_velocity if head.has_velocity else zero
-    rv = (head.rotation @ rel.linear_velocity[..., None])[..., 0] if rel.has_velocity else zero
-    rw = (head.rotation @ rel.angular_velocity[..., None])[..., 0] if rel.has_velocity else zero
-    hw_b = hw.expand_as(arm)
-    lin = hv + torch.linalg.cross(hw_b, arm) + rv
-    return Pose(rot, trans, lin.expand_as(trans), (hw + rw).expand_as(trans))
-
-
-def resolve_world_poses(colliders: Sequence[Collider], head_pose: Optional[Pose] = None,
-                        overrides: Optional[Union[Sequence[Optional[Pose]], Mapping[int, Pose]]] = None
-                        ) -> List[Pose]:
-    """World pose (with velocities) of each collider for one frame.
-
-    Args:
-        colliders: the scene's colliders.
-        head_pose: world pose of the head at the end of the frame (with its velocities);
-            ``None`` = identity, static.
-        overrides: replaces ``collider.pose`` for this frame (same meaning: relative to the head
-            for ``follow_head`` colliders, world otherwise). Either a sequence with one entry per
-            collider (``None`` = keep), or a mapping ``{collider index: Pose}``.
-
-    Returns: a list of :class:`Pose`, one per collider, in the world. A follow-head collider
-    gets R = R_h R_c, T = R_h T_c + T_h, linear velocity v_h + ω_h × (R_h T_c) + R_h v_c and
-    angular velocity ω_h + R_h ω_c (missing velocities count as zero; if both are missing the
-    result has none, i.e. static).
-    """
-    n = len(colliders)
-    if overrides is None:
-        chosen: List[Optional[Pose]] = [None] * n
-    elif isinstance(overrides, Mapping):
-        chosen = [overrides.get(i) for i in range(n)]
-        if any(not 0 <= int(i) < n for i in overrides):
-            raise IndexError(f"collider pose override index out of range (have {n} colliders)")
-    else:
-        chosen = list(overrides)
-        if len(chosen) != n:
-            raise ValueError(f"got {len(chosen)} collider poses for {n} colliders")
-    out = []
-    for col, over in zip(colliders, chosen):
-        pose = over if over is not None else col.pose
-        if col.follow_head:
-            head = head_pose if head_pose is not None else Pose.identity(dtype=torch.float64)
-            out.append(_compose(head, pose if pose is not None else Pose.identity(
-                device=head.rotation.device, dtype=head.rotation.dtype)))
-        else:
-            out.append(pose if pose is not None else Pose.identity(dtype=torch.float64))
-    return out
-
-
-def _flat_pose(pose: Optional[Pose], batch: torch.Size, x: torch.Tensor):
-    """Pose tensors broadcast to x's batch dims and flattened: R (B,3,3), T (B,3), v/ω (B,3) or None.
-
-    As in :class:`Pose`, the pose's batch dims are a prefix of the particles' batch dims
-    (a pose (B, 3, 3) applies to every scene of x (B, C, S, N, 3)).
-    """
-    if pose is None:
-        pose = Pose.identity()
-    pose = pose.to(device=x.device, dtype=x.dtype)
-    pb = tuple(pose.rotation.shape[:-2])
-    extra = len(batch) - len(pb)
-    padded = pb + (1,) * max(extra, 0)
-    if extra < 0 or any(p not in (1, b) for p, b in zip(padded, batch)):
-        raise ValueError(f"collider pose batch shape {pb} does not match the particles' batch "
-                         f"shape {tuple(batch)}")
-    b = int(math.prod(batch)) if len(batch) else 1
-
-    def flat(t, tail):
-        if t is None:
-            return None
-        own = tuple(t.shape[:t.dim() - len(tail)])  # this field's batch dims (a prefix of x's)
-        t = t.reshape(own + (1,) * (len(batch) - len(own)) + tail)
-        return t.expand(tuple(batch) + tail).reshape((b,) + tail)
-
-    lin = flat(pose.linear_velocity, (3,)) if pose.has_velocity else None
-    ang = flat(pose.angular_velocity, (3,)) if pose.has_velocity else None
-    return flat(pose.rotation, (3, 3)), flat(pose.translation, (3,)), lin, ang
-
-
-# ---------------------------------------------------------------------------------------
-# response
-# ---------------------------------------------------------------------------------------
-def _world_to_local(xf: torch.Tensor, rot: torch.Tensor, trans: torch.Tensor) -> torch.Tensor:
-    """xf (B, K, 3), rot (B, 3, 3), trans (B, 3) → rows Rᵀ (x − T), as x R − T R in one fused op."""
-    offset = -(trans[:, None, :] @ rot)  # (B, 1, 3)
-    if rot.shape[0] == 1:
-        return torch.addmm(offset[0], xf[0], rot[0])[None]
-    return torch.baddbmm(offset, xf, rot)
-
-
-def _rotate_rows(d: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
-    """R d for rows d (M, 3) with one R (3, 3) or one per row (M, 3, 3)."""
-    return d @ r.T if r.dim() == 2 else (r * d[:, None, :]).sum(-1)
-
-
-def _unrotate_rows(d: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
-    """Rᵀ d for rows d (M, 3) with one R (3, 3) or one per row (M, 3, 3)."""
-    return d @ r if r.dim() == 2 else (d[:, :, None] * r).sum(1)
-
-
-def collider_distances(x: torch.Tensor, colliders: Sequence[Collider], world_poses: Sequence[Optional[Pose]]
-                       ) -> torch.Tensor:
-    """Signed distance of every particle to every collider (metres, negative inside).
-
-    x: (..., S, N, 3) world positions, metres → (C, ..., S, N) for C colliders.
-    """
-    if len(colliders) == 0:
-        return x.new_zeros((0,) + x.shape[:-1])
-    batch = x.shape[:-3]
-    xf = x.reshape(-1, x.shape[-3] * x.shape[-2], 3)
-    out = []
-    for col, pose in zip(colliders, world_poses):
-        rot, trans, _, _ = _flat_pose(pose, batch, x)
-        local = _world_to_local(xf, rot, trans)
-        out.append(col.distance(local).reshape(x.shape[:-1]))
-    return torch.stack(out)
-
-
-def collide(x: torch.Tensor, v: torch.Tensor, dt: float, colliders: Sequence[Collider],
-            world_poses: Sequence[Optional[Pose]], free: Optional[torch.Tensor] = None
-            ) -> Tuple[torch.Tensor, torch.Tensor]:
-    """Hair–solid contact response for one frame (SPEC §8), colliders processed in order.
-
-    Args:
-        x: (..., S, N, 3) world positions at the end of the frame (after the substeps,
-            inextensibility and hair–hair), metres. They are the candidate positions
-            ``x_start + Δt v`` of SPEC §8, so contact is tested with σ(x) < 0 directly.
-        v: (..., S, N, 3) world velocities, m/s.
-        dt: frame length Δt, seconds (0 gives pure projection, see below).
-        colliders: sequence of :class:`Collider`; empty → (x, v) returned unchanged, no work.
-        world_poses: world :class:`Pose` of each collider at the end of the frame, batch dims
-            equal to x's leading ``...`` or none; velocities give the collider's rigid velocity
-            field (``None`` velocities = static). See :func:`resolve_world_poses`.
-        free: optional (N,) bool, True for simulated particles; pinned ones are never touched.
-
-    For each particle with σ(x) < 0: n = ∇σ/|∇σ| (world), v_c the collider's velocity at x,
-    v_rel = v − v_c split into normal v_N = (v_rel·n) n and tangential v_T. The normal part is kept
-    only if separating (v_rel·n > 0); an approaching one is removed, Δv_N = max(0, −v_rel·n), and
-    Coulomb friction scales the tangential part:
-
-        v' = v_c + max(v_rel·n, 0) n + max(0, 1 − μ Δv_N / |v_T|) v_T      (|v_T| = 0 → v_T = 0)
-
-    so the normal relative velocity is never inward afterwards. The position is made consistent
-    with the new velocity, x ← x + Δt (v' − v) (that is x_start + Δt v', SPEC §8: with high
-    friction a resting particle does not creep), and if it is still inside it is pushed out along
-    the normal by the penetration depth, x' = x − σ(x) n(x) (σ < 0 so this moves outward),
-    ``collider.projection_iterations`` times. Differentiable w.r.t. x and v.
-
-    Returns: (x', v'), same shapes as x, v.
-    """
-    if len(colliders) == 0:
-        return x, v
-    if len(world_poses) != len(colliders):
-        raise ValueError(f"got {len(world_poses)} world poses for {len(colliders)} colliders")
-    if x.shape != v.shape or x.dim() < 3 or x.shape[-1] != 3:
-        raise ValueError(f"x and v must both be (..., S, N, 3), got {tuple(x.shape)} and {tuple(v.shape)}")
-    shape, batch = x.shape, x.shape[:-3]
-    S, N = shape[-3], shape[-2]
-    xf = x.reshape(-1, S * N, 3)
-    vf = v.reshape(-1, S * N, 3)
-    free_k = None
-    if free is not None:
-        free = torch.as_tensor(free, device=x.device).bool().reshape(-1)
-        if free.numel() != N:
-            raise ValueError(f"free mask has {free.numel()} entries for {N} particles per strand")
-        free_k = free.expand(S, N).reshape(S * N)
-    cloned = False
-    for col, pose in zip(colliders, world_poses):
-        rot, trans, lin, ang = _flat_pose(pose, batch, x)
-        with torch.no_grad():
-            inside = col.contact_mask(xf, rot, trans)
-        if free_k is not None:
-            inside = inside & free_k
-        bi, ki = inside.nonzero(as_tuple=True)
-        if bi.numel() == 0:
-            continue
-        if rot.shape[0] == 1:  # one pose for every particle: no per-contact gathers
-            r, t = rot[0], trans[0]
-            lin_m, ang_m = (lin[0], ang[0]) if lin is not None else (None, None)
-        else:
-            r, t = rot[bi], trans[bi]
-            lin_m, ang_m = (lin[bi], ang[bi]) if lin is not None else (None, None)
-        xm, vm = xf[bi, ki], vf[bi, ki]
-        _, n_local = col.distance_and_normal(_unrotate_rows(xm - t, r))
-        n = _rotate_rows(n_local, r)
-        if lin_m is not None:
-            vc = lin_m + torch.linalg.cross(ang_m.expand_as(xm), xm - t)
-        else:
-            vc = torch.zeros_like(vm)
-        vrel = vm - vc
-        vn = _dot(vrel, n)
-        vt = vrel - vn[..., None] * n
-        vt_len = vt.norm(dim=-1)
-        dvn = (-vn).clamp_min(0)
-        keep = (1 - col.friction * dvn / vt_len.clamp_min(1e-30)).clamp_min(0)
-        keep = torch.where(vt_len > 0, keep, torch.zeros_like(keep))
-        v_new = vc + vn.clamp_min(0)[..., None] * n + keep[..., None] * vt
-        x_new = xm + dt * (v_new - vm) if dt else xm
-        for _ in range(max(1, col.projection_iterations)):
-            s_new, nl_new = col.distance_and_normal(_unrotate_rows(x_new - t, r))
-            still = s_new < 0
-            if not bool(still.any()):
-                break
-            depth = torch.where(still, -s_new, torch.zeros_like(s_new))
-            x_new = x_new + depth[..., None] * _rotate_rows(nl_new, r)
-        if not cloned:
-            xf, vf, cloned = xf.clone(), vf.clone(), True
-        xf.index_put_((bi, ki), x_new)
-        vf.index_put_((bi, ki), v_new)
-    return xf.reshape(shape), vf.reshape(shape)
-
-
-class CollisionStage:
-    """The collision stage of a frame, in the form ``integrator.step`` runs its stages.
-
-    ``stage(x, v, head_pose, dt, state) -> (x, v)``: resolves the colliders' world poses for the
-    end of the frame (:func:`resolve_world_poses` with ``head_pose`` and the per-frame
-    :attr:`collider_poses`) and applies :func:`collide`. Pinned particles are left alone.
-
-    Args:
-        colliders: sequence of :class:`Collider` (non-empty; a scene without colliders should
-            not add the stage at all).
-        free: (N,) bool, True for simulated particles (e.g. ``~model.pinned``); None = all.
-        restore_lengths: optional ``f(x, v, head_pose, dt) -> (x, v)`` that restores the edge
-            lengths (e.g. :func:`ams_torch.sim.integrator.inextensibility`). When given, the stage
-            runs ``collide`` → ``restore_lengths`` → ``collide`` with Δt = 0 (push-out of what
-            the length pass moved back inside), ``restore_rounds`` times. Without it, contact
-            response (friction moves a particle by Δt (v' − v), push-out by the depth) leaves
-            the edges to its neighbours stretched (measured in the README's design decisions).
-        restore_rounds: rounds of length restore + push-out (≥ 1); each round shrinks what
-            is left of the stretch.
-
-    Attributes:
-        collider_poses: overrides for the next frames (see :func:`resolve_world_poses`); set it
-            before a step to animate colliders, ``None`` to use each ``collider.pose``.
-    """
-
-    def __init__(self, colliders: Sequence[Collider], free: Optional[torch.Tensor] = None,
-                 restore_lengths: Optional[Callable] = None, restore_rounds: int = 1):
-        self.colliders = list(colliders)
-        if not self.colliders:
-            raise ValueError("CollisionStage needs at least one collider")
-        self.free = free
-        self.restore_lengths = restore_lengths
-        self.restore_rounds = int(restore_rounds)
-        self.collider_poses: Optional[Union[Sequence[Optional[Pose]], Mapping[int, Pose]]] = None
-
-    def __call__(self, x: torch.Tensor, v: torch.Tensor, head_pose: Optional[Pose], dt: float, state=None
-                 ) -> Tuple[torch.Tensor, torch.Tensor]:
-        poses = resolve_world_poses(self.colliders, head_pose, self.collider_poses)
-        x, v = collide(x, v, dt, self.colliders, poses, free=self.free)
-        if self.restore_lengths is not None:
-            for _ in range(self.restore_rounds):
-                x, v = self.restore_lengths(x, v, head_pose, dt)
-                x, v = collide(x, v, 0.0, self.colliders, poses, free=self.free)
-        return x, v
+        return f"MeshCollider({grid}, follow_head={self.follow_head}, friction={float(self.friction)})"

@@ -1,0 +1,97 @@
+"""The strand dynamics of one frame (SPEC §4): M linearised backward-Euler substeps, then
+follow-the-leader inextensibility. The torch implementation here is the definition; the fused
+native kernel (:mod:`ams_torch.sim.native`) runs the same arithmetic.
+
+Per substep s = 1 … M of length Δt' = Δt / M: the head pose at the substep's end is
+interpolated between the frame's two poses (:meth:`Pose.interpolate`: slerp, and cubic Hermite
+translation when both poses carry velocities); the ghosts follow it rigidly (world ghosts
+``y = R ghost_rest + T``, their velocity the change over the substep), the pinned particles
+are driven to their rest positions carried by the head, the system of :mod:`assembly` is solved
+for the new velocities and the positions advance ``x += Δt' v`` (pinned particles land exactly on
+their targets).
+"""
+from __future__ import annotations
+
+import torch
+from torch.profiler import record_function
+
+from ams_torch.geometry.pose import Pose
+from ams_torch.sim.assembly import assemble_system
+from ams_torch.sim.forces import safe_normalize
+from ams_torch.sim.inextensibility import follow_the_leader
+from ams_torch.sim.model import Coefficients, Model
+from ams_torch.sim.state import Config, ExternalForce
+from ams_torch.solver.op import solve_banded
+
+__all__ = ["frame_dynamics", "inextensibility", "substep_poses"]
+
+
+def substep_poses(pose0: Pose, pose1: Pose, hermite: bool, substeps: int, dt) -> list:
+    """The head poses at the ends of the M substeps (the last one is ``pose1``). Without
+    ``hermite`` the velocities are dropped so translation interpolates linearly."""
+    start = pose0 if hermite else Pose(pose0.rotation, pose0.translation, check=False)
+    end = pose1 if hermite else Pose(pose1.rotation, pose1.translation, check=False)
+    return [start] + [start.interpolate(end, (s + 1) / substeps, dt) for s in range(substeps)]
+
+
+def _external(external_force: ExternalForce, x, v, t):
+    if external_force is None or isinstance(external_force, torch.Tensor):
+        return external_force
+    return external_force(x, v, t)
+
+
+def inextensibility(model: Model, config: Config, x: torch.Tensor, v: torch.Tensor, pose: Pose, dt) -> tuple:
+    """Restore every edge to its rest length (SPEC §4): follow-the-leader with Müller's velocity
+    correction (``config.ftl_damping``); a collapsed edge takes its rest direction carried by
+    ``pose`` (the head at the end of the frame). x, v: (..., S, N, 3) m, m/s; dt: the frame, s.
+    Returns the new (x, v)."""
+    with record_function("ams_torch.inextensibility"):
+        rest = model.rest_positions
+        fallback = safe_normalize(pose.rotate((rest[:, 1:, :] - rest[:, :-1, :]).expand(
+            x.shape[:-3] + (rest.shape[0], rest.shape[1] - 1, 3))))[0]
+        return follow_the_leader(x, v, model.edge_rest_length, model.pinned, dt, config.ftl_damping, fallback)
+
+
+def frame_dynamics(model: Model, coeffs: Coefficients, config: Config, x: torch.Tensor, v: torch.Tensor,
+                   ghost_rest: torch.Tensor, sag_offset: torch.Tensor, pose0: Pose, pose1: Pose, hermite: bool,
+                   time: torch.Tensor, external_force: ExternalForce = None) -> tuple:
+    """One frame of strand dynamics: M substeps and inextensibility (plain torch, differentiable).
+
+    Args:
+        model, coeffs, config: fixed data, its coefficients and the step's settings.
+        x, v: (..., S, N, 3) m and m/s at the start of the frame.
+        ghost_rest: (..., S, N, 3) m, the ghosts' rest shape in the head frame.
+        sag_offset: (..., S, N, 3) m, head frame, the scene's sag-free offset (non-Hookean law).
+        pose0, pose1: head poses at the start and end of the frame, with velocities.
+        hermite: whether substep poses use cubic Hermite translation (both ends had velocities).
+        time: () s at the start of the frame (for a callable external force).
+        external_force: see :data:`~ams_torch.sim.state.ExternalForce`.
+    Returns:
+        (x, v): (..., S, N, 3) after the substeps and follow-the-leader.
+    """
+    dt = config.dt
+    m_sub = config.substeps
+    h = dt / m_sub
+    pinned = model.pinned[..., None]  # (S, N, 1)
+    rest = model.rest_positions.expand(x.shape)
+    poses = substep_poses(pose0, pose1, hermite, m_sub, dt)
+    y_a = poses[0].to_world(ghost_rest)
+    nonhookean = config.nonhookean
+    offset = poses[0].rotate(sag_offset) if nonhookean else None
+    for s in range(m_sub):
+        pb = poses[s + 1]
+        y_b = pb.to_world(ghost_rest)
+        w = (y_b - y_a) / h
+        target = pb.to_world(rest)
+        pin_v = torch.where(pinned, (target - x) / h, torch.zeros_like(x))
+        f_ext = _external(external_force, x, v, time + s * h)
+        blocks, rhs = assemble_system(model, coeffs, config, x, v, y_a, w, pin_v, h, f_ext, offset)
+        with record_function("ams_torch.solve"):
+            v = solve_banded(blocks, rhs)
+        x = torch.where(pinned, target, x + h * v)
+        y_a = y_b
+        if nonhookean:
+            offset = pb.rotate(sag_offset)
+    if config.inextensibility:
+        x, v = inextensibility(model, config, x, v, pose1, dt)
+    return x, v

@@ -1,0 +1,178 @@
+"""The frame step: one pure function ``step(model, state, control, config) -> State`` (SPEC §4).
+
+Order within a frame: the strand dynamics (M substeps and follow-the-leader,
+:mod:`ams_torch.sim.dynamics`), then hair–hair interaction (SPEC §6), then hair–solid
+collisions with their edge-length restore (SPEC §8), then the pinned particles take the head's
+velocity, the non-Hookean plastic yield (SPEC §7) updates the ghosts, and the divergence flag is
+updated. Nothing is modified in place; there is no host synchronisation (no ``.item()``, no
+data-dependent branches or shapes): Python branches read ``config`` only, so the step can be
+compiled with ``torch.compile(fullgraph=True)`` and captured in a CUDA graph.
+
+Profiler labels (``torch.profiler.record_function``): ``ams_torch.dynamics``,
+``ams_torch.hair_hair``, ``ams_torch.collisions`` (and inside the dynamics ``ams_torch.assembly``,
+``ams_torch.springs``, ``ams_torch.biphasic``, ``ams_torch.solve``, ``ams_torch.inextensibility``).
+"""
+from __future__ import annotations
+
+from typing import Optional, Sequence
+
+import torch
+from torch.profiler import record_function
+
+from ams_torch.geometry.pose import Pose
+from ams_torch.sim import forces
+from ams_torch.sim.dynamics import frame_dynamics, inextensibility
+from ams_torch.sim.model import Coefficients, Model, coefficients
+from ams_torch.sim.state import Config, Control, State
+from ams_torch.stages.collide import collide, resolve_world_poses
+from ams_torch.stages.hair_hair import hair_hair_stage
+
+__all__ = ["step", "resolve_pose", "collisions", "plastic_update", "check_state", "SimulationDiverged"]
+
+
+class SimulationDiverged(FloatingPointError):
+    """The state became non-finite or exploded. ``.frame`` and ``.strands`` say where;
+    ``.bad_input`` says whether the data given to the simulator was already non-finite."""
+
+    def __init__(self, message: str, frame: int, strands: list, bad_input: bool = False):
+        super().__init__(message)
+        self.frame = frame
+        self.strands = strands
+        self.bad_input = bad_input
+
+
+def resolve_pose(prev: Pose, pose: Optional[Pose], dt) -> tuple:
+    """The end-of-frame pose with velocities, and whether substeps use Hermite interpolation.
+
+    ``pose=None`` keeps the head where it is, at rest. A pose without velocities gets the
+    ones implied by the change of pose over the frame (and linear interpolation).
+    """
+    if pose is None:
+        z = torch.zeros_like(prev.translation)
+        return Pose(prev.rotation, prev.translation, z, z.clone(), check=False), False
+    if pose.has_velocity:
+        return pose, prev.has_velocity
+    lin = (pose.translation - prev.translation) / dt
+    ang = prev.relative_rotvec(pose) / dt
+    return pose.with_velocity(lin, ang), False
+
+
+def collisions(model: Model, config: Config, x: torch.Tensor, v: torch.Tensor, head_pose: Pose,
+               collider_poses: Sequence[Optional[Pose]]) -> tuple:
+    """The collision stage (SPEC §8): the contact response of every collider, then
+    ``config.collision_rounds`` rounds of edge-length restore (follow-the-leader) and push-out
+    (the response with Δt = 0), so contact does not leave stretched edges.
+    x, v: (..., S, N, 3) m, m/s. Returns the new (x, v)."""
+    cols = list(model.colliders)
+    poses = resolve_world_poses(cols, head_pose, list(collider_poses) or None)
+    free = ~model.pinned
+    x, v = collide(x, v, config.dt, cols, poses, free=free)
+    if config.inextensibility:
+        for _ in range(config.collision_rounds):
+            x, v = inextensibility(model, config, x, v, head_pose, config.dt)
+            x, v = collide(x, v, 0.0, cols, poses, free=free)
+    return x, v
+
+
+def plastic_update(model: Model, coeffs: Coefficients, x: torch.Tensor, ghost_rest: torch.Tensor,
+                   sag_offset: torch.Tensor, pose: Pose) -> torch.Tensor:
+    """Yield of the non-Hookean integrity coupling (SPEC §7), once per frame.
+
+    x: (..., S, N, 3) m world positions at the end of the frame; ghost_rest, sag_offset:
+    (..., S, N, 3) m head frame; pose: the head pose at the end of the frame. Returns the new
+    ghost_rest: where a free particle's elongation (from its anchor ``ghost_rest − sag_offset``)
+    exceeds the breaking point, the anchor moves (permanently) so the elongation is exactly it.
+    """
+    anchor = ghost_rest - sag_offset
+    new_anchor = forces.integrity_yield(pose.to_local(x), anchor, model.segment_length, coeffs.breaking,
+                                        ~model.pinned)
+    return new_anchor + sag_offset
+
+
+def _nonfinite(*tensors) -> torch.Tensor:
+    bad = torch.zeros((), dtype=torch.bool, device=tensors[0].device)
+    for t in tensors:
+        bad = bad | ~torch.isfinite(t).all()
+    return bad
+
+
+def _divergence(config: Config, state: State, control: Control, x, v, pose: Pose) -> tuple:
+    """Update the state's divergence flag (device-side): (diverged_frame, diverged_input)."""
+    rel = torch.nan_to_num(v - pose.velocity_at(x), nan=0.0, posinf=0.0, neginf=0.0)
+    fast = rel.norm(dim=-1).amax() > config.max_relative_speed
+    bad = _nonfinite(x, v) | fast
+    inputs = [state.x, state.v]
+    if isinstance(control.external_force, torch.Tensor):
+        inputs.append(control.external_force)
+    first = (state.diverged_frame < 0) & bad
+    frame = torch.where(first, state.frame + 1, state.diverged_frame)
+    bad_input = torch.where(first, _nonfinite(*inputs), state.diverged_input)
+    return frame, bad_input
+
+
+def _label(name: str):
+    return record_function(f"ams_torch.{name}")
+
+
+def step(model: Model, state: State, control: Control, config: Config, timer=None) -> State:
+    """Advance one frame of ``config.dt`` seconds (SPEC §4). Pure: returns a new state.
+
+    Args:
+        model: the groom's fixed data (and the stages' fixed data: ``model.hair_hair`` grid,
+            ``model.colliders``).
+        state: the current state (x, v: (..., S, N, 3)).
+        control: the frame's head pose, collider poses, time and external force.
+        config: the frozen settings (the only thing Python branches on).
+        timer: optional ``timer(stage_name)`` returning a context manager around each stage
+            ("dynamics", "hair_hair", "collisions"), e.g. to measure wall time per stage
+            (``ams_torch.apps.scene.simulate``); default: profiler labels only.
+    Returns:
+        the new :class:`State`.
+    """
+    stage = timer or _label
+    dt = config.dt
+    pose0 = state.pose
+    pose1, hermite = resolve_pose(pose0, control.pose, dt)
+    coeffs = coefficients(model)
+    time = state.time if control.time is None else control.time
+    with stage("dynamics"):
+        x, v = frame_dynamics(model, coeffs, config, state.x, state.v, state.ghost_rest, state.sag_offset, pose0,
+                              pose1, hermite, time, control.external_force)
+    if config.hair_hair:
+        with stage("hair_hair"):
+            x, v = hair_hair_stage(model.hair_hair, x, v, coeffs.mass, pose1, dt, ~model.pinned[0])
+    if config.colliders:
+        with stage("collisions"):
+            x, v = collisions(model, config, x, v, pose1, control.collider_poses)
+    v = torch.where(model.pinned[..., None], pose1.velocity_at(x), v)
+    ghost_rest = state.ghost_rest
+    if config.nonhookean:
+        ghost_rest = plastic_update(model, coeffs, x, ghost_rest, state.sag_offset, pose1)
+    diverged_frame, diverged_input = _divergence(config, state, control, x, v, pose1)
+    return State(x=x, v=v, ghost_rest=ghost_rest, sag_offset=state.sag_offset, pose=pose1, time=time + dt,
+                 frame=state.frame + 1, diverged_frame=diverged_frame, diverged_input=diverged_input)
+
+
+def check_state(state: State, config: Config) -> None:
+    """Divergence guard, outside the step (one host sync): raise :class:`SimulationDiverged`
+    naming the first bad frame and the strands now non-finite or faster than
+    ``config.max_relative_speed`` relative to the head, if the state's flag is set."""
+    frame = int(state.diverged_frame)
+    if frame < 0:
+        return
+    x, v = state.x, state.v
+    finite = torch.isfinite(x).all(-1).all(-1) & torch.isfinite(v).all(-1).all(-1)
+    rel = torch.nan_to_num(v - state.pose.velocity_at(x), nan=0.0, posinf=0.0, neginf=0.0)
+    fast = rel.norm(dim=-1).amax(-1) > config.max_relative_speed
+    idx = torch.nonzero(~finite | fast, as_tuple=False).tolist()
+    kind = "non-finite positions/velocities" if bool((~finite).any()) else \
+        f"speeds above max_relative_speed = {config.max_relative_speed:g} m/s"
+    bad_input = bool(state.diverged_input)
+    where = f" in {len(idx)} strand(s); first (index: [scene..., strand]) {idx[:8]}" if idx else ""
+    if bad_input:
+        advice = ("The input of that frame (the state or the external force) already held NaN/Inf: "
+                  "check the initial state and the controls given to the simulator.")
+    else:
+        advice = "Try more substeps, a smaller dt or lower stiffness."
+    raise SimulationDiverged(f"simulation diverged at frame {frame}: {kind}{where}. {advice}", frame=frame,
+                             strands=idx, bad_input=bad_input)
