@@ -3,6 +3,7 @@ import json
 import os
 
 import h5py
+import pytest
 import imageio.v3 as iio
 import numpy as np
 
@@ -79,3 +80,119 @@ def test_info(capsys):
     assert main(["info"]) == 0
     out = capsys.readouterr().out
     assert "torch" in out and "native solver" in out and "cuda" in out
+
+
+# -- expected failures: one line, exit status 2 (item 5) ------------------------------------------
+def _one_error_line(capsys, argv) -> str:
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in err, err
+    return lines[0]
+
+
+def test_bad_devices_fail_up_front(tmp_path, capsys):
+    import torch
+
+    scene = tmp_path / "tiny.toml"
+    scene.write_text(TINY)
+    run = ["simulate", str(scene), "--out", str(tmp_path / "o"), "--quiet", "--no-video", "--device"]
+    assert _one_error_line(capsys, run + ["tpu"]) == \
+        "error: --device 'tpu' is not a device this library runs on; use cpu, cuda or cuda:N"
+    assert "is not a device" in _one_error_line(capsys, run + ["cuda:x"])
+    if torch.version.cuda is None:
+        msg = _one_error_line(capsys, run + ["cuda"])
+        assert msg == f"error: --device cuda: this torch build ({torch.__version__}) has no CUDA support; use " \
+                      f"--device cpu, or install a CUDA build of torch"
+    elif torch.cuda.device_count() == 0:
+        assert "no CUDA device is visible" in _one_error_line(capsys, run + ["cuda"])
+    else:
+        n = torch.cuda.device_count()
+        assert f"there {'is' if n == 1 else 'are'} {n} CUDA device(s)" in _one_error_line(capsys, run + [f"cuda:{n}"])
+    assert not (tmp_path / "o").exists()  # refused before anything was built or written
+    gen = ["generate", str(scene), "--out", str(tmp_path / "g"), "--device", "tpu"]
+    assert "is not a device" in _one_error_line(capsys, gen)
+
+
+def test_divergence_says_whether_the_input_was_finite(tmp_path, capsys):
+    nan_amp = tmp_path / "nan.toml"
+    nan_amp.write_text(TINY.replace('type = "shake"', 'type = "shake"\namplitude = nan'))
+    out = ["--out", str(tmp_path / "o"), "--quiet", "--no-video"]
+    assert _one_error_line(capsys, ["simulate", str(nan_amp)] + out) == \
+        f"error: {nan_amp}: [motion].amplitude must be a finite number; got nan"
+    poses = tmp_path / "poses.npz"
+    np.savez(poses, translations=np.array([[0.0, 0.0, 0.0], [np.nan, 0.0, 0.0], [0.0, 0.0, 0.0]]),
+             rotvecs=np.zeros((3, 3)), dt=0.02)
+    recorded = tmp_path / "recorded.toml"
+    recorded.write_text(TINY.replace('type = "shake"', f'type = "recorded"\npath = "{poses.name}"'))
+    msg = _one_error_line(capsys, ["simulate", str(recorded)] + out)
+    assert msg.startswith(f"error: {recorded}: the scene input is not finite: [motion]: the pose at t = ")
+    assert "This is not a stability problem (more substeps will not help)" in msg
+    stiff = tmp_path / "fast.toml"  # finite input that the divergence guard stops: the source's advice stands
+    stiff.write_text(TINY + "[params]\nmax_relative_speed = 1e-6\n")
+    msg = _one_error_line(capsys, ["simulate", str(stiff)] + out)
+    assert "diverged at frame 1" in msg and "not finite" not in msg
+    from ams_torch import SimulationDiverged
+
+    with pytest.raises(SimulationDiverged):  # --debug: the exception itself, with its traceback
+        main(["--debug", "simulate", str(stiff)] + out)
+
+
+def test_generate_flags_are_validated(tmp_path, capsys):
+    recipe = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "datasets", "tiny.toml")
+    out = str(tmp_path / "d")
+    gen = ["generate", recipe, "--out", out, "--quiet"]
+    cases = [
+        (["--shards", "-2"], "error: --shards must be an integer >= 1 (the number of shard files); got -2"),
+        (["--shards", "0"], "error: --shards must be an integer >= 1 (the number of shard files); got 0"),
+        (["--shard", "1/4", "--shards", "2"], "error: --shard 1/4 is shard 1 of 4, but --shards says 2; give one of "
+                                              "them (or the same n in both)"),
+        (["--shard", "3/3"], "error: --shard 3/3: shards are numbered from 0, so i must be in 0..2 (e.g. 2/3 is the "
+                             "last of 3)"),
+        (["--shard", "one/3"], "error: --shard must look like i/n with 0 <= i < n (e.g. 0/4 is the first of 4 shards); "
+                               "got 'one/3'"),
+        (["--shard", "0/4"], "error: 4 shards for 3 batch group(s): a shard would be empty; use at most 3 shards (or "
+                             "more sequences / a smaller batch)"),
+        (["--shard", "0/2", "--backend", "ray"], "error: --shard selects one shard for the local backend; with "
+                                                  "--backend ray use --shards N (Ray runs every shard)"),
+        (["--sequences", "0"], "error: --sequences must be a positive integer; got 0"),
+    ]
+    for extra, expected in cases:
+        assert _one_error_line(capsys, gen + extra) == expected
+    assert not os.path.exists(out) or not [n for n in os.listdir(out) if n != ".lock"]
+    with pytest.raises(SystemExit) as done:
+        main(["generate", "--help"])
+    assert done.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "generate only shard I of N, numbered from 0: 0 <= I < N (0/4 is the first of 4, 3/4 the last" in text
+
+
+def test_render_a_dataset_sequence_and_corrupt_files(tmp_path, capsys):
+    from ams_torch.apps.datagen import generate
+    from ams_torch.apps.recipe import parse_recipe
+
+    r = parse_recipe({"name": "mini", "sequences": 2, "frames": 3, "head": {"mesh": "sphere"},
+                      "groom": {"kind": "sphere", "strands": 10, "particles": 6}, "motion": {"type": "nod"},
+                      "split": {"train": 1.0}})
+    path = generate(r, str(tmp_path / "ds"), progress=False, log=lambda s: None)[0]
+    assert main(["render", str(tmp_path / "ds"), "--sequence", "1", "--out", str(tmp_path / "s1.png"), "--quiet"]) == 0
+    assert "rendering sequence 1 of" in capsys.readouterr().out
+    assert iio.imread(tmp_path / "s1.png").ndim == 3
+    assert main(["render", path, "--every", "2", "--quiet"]) == 0  # a shard file; default out beside it
+    assert iio.imread(tmp_path / "ds" / "seq_000000.mp4").shape[0] == 2
+    assert "no sequences found" in _one_error_line(capsys, ["render", path, "--sequence", "7", "--quiet"])
+    data = open(path, "rb").read()
+    bad = tmp_path / "truncated.h5"
+    bad.write_bytes(data[: len(data) // 3])
+    assert _one_error_line(capsys, ["render", str(bad), "--quiet"]).startswith(
+        f"error: {bad}: cannot be opened as HDF5 (truncated or corrupt file)")
+    scene = tmp_path / "tiny.toml"
+    scene.write_text(TINY)
+    assert main(["simulate", str(scene), "--out", str(tmp_path / "o"), "--quiet", "--no-video"]) == 0
+    seq = open(tmp_path / "o" / "sequence.h5", "rb").read()
+    (tmp_path / "cut.h5").write_bytes(seq[: len(seq) // 2])
+    assert "cannot be opened as HDF5" in _one_error_line(capsys, ["render", str(tmp_path / "cut.h5"), "--quiet"])
+    assert _one_error_line(capsys, ["render", str(tmp_path / "nothing.h5")]) == \
+        f"error: no such file to render {str(tmp_path / 'nothing.h5')!r}"
+    assert "--sequence picks a sequence of a dataset" in _one_error_line(
+        capsys, ["render", str(tmp_path / "o" / "sequence.h5"), "--sequence", "0"])
