@@ -13,7 +13,9 @@ Tolerances (max |native − torch| / max |torch| per quantity):
   R · ε₃₂ (ε₃₂ = 2⁻²³ ≈ 1.2e-7), and fused multiply-adds in the kernels round differently from
   torch's separate ops; every later quantity is a weighted sum or a contraction (ω < 1) of
   those. Positions x' are compared with an extra absolute ``4 ulp(max |x|)``: both paths store
-  x' = x + Δx rounded to the precision of x.
+  x' = x + Δx rounded to the precision of x (measured: 1 ulp). With detailed collisions, which
+  run on that rounded x', a contact normal turns by ~ulp(x)/radius, hence the whole-stage
+  velocity bound ``max(F32_REL, 8 ε₃₂ max|x| / collision_radius)`` (measured 1.6e-5).
 """
 from __future__ import annotations
 
@@ -212,7 +214,11 @@ def test_stage_parity(native, device, dtype, detailed):
            for b in ("torch", "native")}
     (x_t, v_t), (x_n, v_n) = out["torch"], out["native"]
     assert x_n.shape == s["x"].shape and v_n.dtype == dtype
-    assert rel(v_n - s["v"], v_t - s["v"]) <= tol(dtype, grid.resolution)
+    bound = tol(dtype, grid.resolution)
+    if detailed and dtype == torch.float32:
+        # contacts see x' rounded to float32 by each path: a normal turns by ~ulp(x)/radius
+        bound = max(bound, 8 * torch.finfo(dtype).eps * float(s["x"].abs().max()) / grid.config.collision_radius)
+    assert rel(v_n - s["v"], v_t - s["v"]) <= bound
     _check_positions(x_n, x_t, s["x"], dtype, grid.resolution)
     assert float((v_t - s["v"]).abs().max()) > 1e-2  # the stage did change velocities
 
