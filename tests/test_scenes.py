@@ -2,6 +2,7 @@
 built; bad files fail with a message naming the key; trimming shortens strands."""
 import glob
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -93,3 +94,118 @@ def test_trim_shortens_crossing_strands_only():
     assert torch.allclose(new_rest[1], rest[1], atol=1e-6)
     seg = (new_rest[0, 1:] - new_rest[0, :-1]).norm(dim=-1)
     assert torch.allclose(seg, torch.full_like(seg, 0.012), atol=1e-5)
+
+
+# -- imported assets, rotations, tables --------------------------------------------------------
+ASSETS = Path(__file__).resolve().parents[2] / "shared" / "assets"
+R90Y = [[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]  # 90° about +y
+
+
+def _files(tmp_path):
+    (tmp_path / "head.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    (tmp_path / "hair.ply").write_text("ply\n")
+    return {"head": {"mesh": "head.obj"}, "groom": {"file": "hair.ply", "strands": 10}, "frames": 2}
+
+
+def test_imported_asset_keys_are_normalised(tmp_path):
+    base = _files(tmp_path)
+    s = parse_scene({**base, "head": {"mesh": "head.obj", "units": "cm", "up_axis": "z",
+                                      "transform": {"rotation": R90Y, "translation": [0.0, 0.1, 0.0]}},
+                     "groom": {"file": "hair.ply", "units": "mm", "bind": True, "max_bind_distance": 0.002}},
+                    where="s.toml", base=str(tmp_path))
+    assert s["head"]["mesh"] == str(tmp_path / "head.obj") and s["groom"]["file"] == str(tmp_path / "hair.ply")
+    assert s["head"]["scale"] == 0.01 and "units" not in s["head"] and s["head"]["up_axis"] == "z"
+    assert s["groom"]["scale"] == 0.001 and s["groom"]["up_axis"] == "y" and s["groom"]["bind"] is True
+    assert s["head"]["transform"] == {"rotation": R90Y, "translation": [0.0, 0.1, 0.0]}
+    m = [[0.0, 0.0, 1.0, 0.5], [0.0, 1.0, 0.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+    s = parse_scene({**base, "groom": {"file": "hair.ply", "scale": 2.0, "transform": m}}, base=str(tmp_path))
+    assert s["groom"]["transform"] == {"rotation": R90Y, "translation": [0.5, 0.0, 0.0]} and s["groom"]["scale"] == 2.0
+    c, sn = np.cos(0.3), np.sin(0.3)  # 7 significant digits: within 1e-5, returned as the exact nearest rotation
+    r7 = [[float(f"{c:.7f}"), 0.0, float(f"{sn:.7f}")], [0.0, 1.0, 0.0], [-float(f"{sn:.7f}"), 0.0, float(f"{c:.7f}")]]
+    out = np.array(parse_scene({**base, "groom": {"file": "hair.ply", "transform": {"rotation": r7}}},
+                               base=str(tmp_path))["groom"]["transform"]["rotation"])
+    assert np.abs(out.T @ out - np.eye(3)).max() < 1e-14 and np.abs(out - np.array(r7)).max() < 1e-6
+
+
+@pytest.mark.parametrize("section,value,message", [
+    ("groom", {"file": "hair.ply", "transform": {"rotation": [[1.01, 0, 0], [0, 1, 0], [0, 0, 1]]}},
+     "[groom.transform].rotation is not a rotation matrix: its rows are not orthonormal (max |R^T R - I| = 0.02"),
+    ("groom", {"file": "hair.ply", "transform": {"rotation": [[0.7071, 0, 0.7071], [0, 1, 0], [-0.7071, 0, 0.7071]]}},
+     "tolerance 1e-05; write the entries with at least 6 significant digits"),
+    ("head", {"mesh": "head.obj", "transform": [[-1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]},
+     "[head].transform (its upper-left 3x3) is not a rotation matrix: det = -1 (a reflection"),
+    ("head", {"mesh": "head.obj", "transform": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1]]},
+     "[head].transform: the last row of a 4x4 transform must be [0, 0, 0, 1]; got [0.0, 0.0, 1.0, 1.0]"),
+    ("head", {"mesh": "head.obj", "transform": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]},
+     "[head].transform must be a 4x4 nested list of numbers"),
+    ("motion", {"type": "keyframes", "times": [0.0, 1.0], "rotations": [R90Y, [[1, 0, 0], [0, 1, 0], [0, 0, -1]]]},
+     "[motion].rotations[1] is not a rotation matrix: det = -1"),
+    ("motion", {"type": "keyframes", "times": [0.0, 1.0], "rotations": [R90Y], "translations": [[0, 0, 0]] * 2},
+     "[motion].rotations has 1 entries; [motion].times has 2"),
+    ("groom", {"preset": "straight", "units": "cm"}, "[groom].units applies to a file ([groom].file)"),
+    ("groom", {"file": "hair.ply", "units": "cm", "scale": 0.01}, "[groom]: give units or scale, not both"),
+    ("groom", {"file": "hair.ply", "units": "inch"}, "[groom].units must be one of ['m', 'cm', 'mm']; got 'inch'"),
+    ("groom", {"preset": "straight", "bind": True}, "[groom].bind binds a groom read from a file"),
+    ("groom", {"file": "hair.ply", "max_bind_distance": 0.01}, "[groom].max_bind_distance needs bind = true"),
+    ("groom", {"file": "hair.ply", "bind": True, "max_bind_distance": -1.0},
+     "[groom].max_bind_distance must be a finite number > 0; got -1.0"),
+    ("head", {"mesh": "default", "up_axis": "z"}, "[head].up_axis applies to a file ([head].mesh = path)"),
+    ("head", {"mesh": "head.obj", "up_axis": "x"}, "[head].up_axis must be one of ['y', 'z']; got 'x'"),
+    ("head", {"mesh": "hair.ply2"}, "[head].mesh: 'hair.ply2' is not a mesh file (extension .ply2; known:"),
+    ("groom", {"file": "head.obj"}, "[groom].file: 'head.obj' is not a groom file (extension .obj; known:"),
+])
+def test_import_keys_and_rotations_are_checked(tmp_path, section, value, message):
+    raw = _files(tmp_path)
+    raw[section] = value
+    if section == "groom" and value.get("bind"):
+        raw["head"] = {"mesh": "head.obj"}
+    with pytest.raises(SceneError) as err:
+        parse_scene(raw, where="scene.toml", base=str(tmp_path))
+    assert str(err.value).startswith("scene.toml: ") and message in str(err.value), str(err.value)
+
+
+def test_keyframe_rotations_become_rotvecs(tmp_path):
+    s = parse_scene({"motion": {"type": "keyframes", "times": [0.0, 1.0], "rotations": [np.eye(3).tolist(), R90Y]}})
+    assert "rotations" not in s["motion"] and np.allclose(s["motion"]["rotvecs"], [[0, 0, 0], [0, np.pi / 2, 0]])
+    with pytest.raises(SceneError, match=r"\[groom\].bind needs a head mesh to bind to"):
+        parse_scene({**_files(tmp_path), "head": {"mesh": "sphere"}, "groom": {"file": "hair.ply", "bind": True}},
+                    base=str(tmp_path))
+
+
+@pytest.mark.parametrize("section", ["head", "groom", "stages", "params", "hair_hair", "wind", "trim", "render",
+                                     "motion", "colliders"])
+def test_every_section_is_a_table_of_known_keys(section):
+    raw = {"head": {"mesh": "sphere"}, "groom": {"kind": "sphere"}, "stages": {"hair_hair": True, "collisions": True}}
+    table = {"motion": {"type": "shake", "colour": 1}, "colliders": [{"type": "sphere", "colour": 1}]}.get(
+        section, {**raw.get(section, {}), "colour": 1})
+    raw[section] = table
+    with pytest.raises(SceneError) as err:
+        parse_scene(raw, where="scene.toml")
+    name = "colliders[0]" if section == "colliders" else section
+    assert f"unknown key(s) ['colour'] in [{name}]; allowed: [" in str(err.value)
+
+
+def test_the_real_ratboy_assets_parse(tmp_path):
+    if not ASSETS.is_dir():
+        pytest.skip("shared assets folder absent")
+    s = load_scene(_bad(tmp_path, f'frames = 2\n[head]\nmesh = "{ASSETS / "Ratboy_body.tfxmesh"}"\nunits = "m"\n'
+                                  f'[groom]\nfile = "{ASSETS / "Ratboy_mohawk.tfx"}"\nbind = true\n'
+                                  f'max_bind_distance = 0.001\n'))
+    assert s["head"]["mesh"].endswith("Ratboy_body.tfxmesh") and s["head"]["scale"] == 1.0
+    assert s["groom"]["file"].endswith("Ratboy_mohawk.tfx") and s["groom"]["max_bind_distance"] == 0.001
+
+
+def test_validators_are_short_functions():
+    """Scene and recipe validation stays table driven: no function over 50 lines."""
+    import ast
+
+    import ams_torch.apps.recipe as recipe_pkg
+    import ams_torch.apps.scene.schema as schema
+
+    paths = [schema.__file__] + sorted(glob.glob(os.path.join(os.path.dirname(recipe_pkg.__file__), "*.py")))
+    long = []
+    for p in paths:
+        for node in ast.walk(ast.parse(open(p).read())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno - node.lineno + 1 > 50:
+                long.append(f"{os.path.basename(p)}:{node.name} ({node.end_lineno - node.lineno + 1} lines)")
+    assert not long, long
