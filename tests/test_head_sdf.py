@@ -429,3 +429,40 @@ def test_orient_faces_and_resolution_bound():
         SDFGrid.from_mesh(ico, resolution=600, cache=False)
     with pytest.raises(ValueError, match=r"face indices must lie in \[0, 162\); got \[0, 999\]"):
         SDFGrid.from_mesh(trimesh.Trimesh(ico.vertices, np.array([[0, 1, 999]]), process=False), cache=False)
+
+
+# ---------------------------------------------------------------------------------------
+# binding imported roots to a mesh (SPEC §14)
+# ---------------------------------------------------------------------------------------
+def test_bind_to_reports_distances_and_names_far_strands(caplog):
+    from ams_torch.grooms.groom import Groom
+
+    r = 0.1
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=r)
+    rng = np.random.default_rng(6)
+    dirs = rng.normal(size=(40, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    gap = np.full(40, 2e-4)
+    gap[[5, 17, 33]] = [0.02, 0.03, 0.025]  # three roots far off the surface
+    roots = dirs * (r + gap[:, None])
+    strands = [roots[i] + dirs[i] * np.linspace(0, 0.05, 3 + i % 4)[:, None] for i in range(40)]  # ragged
+    groom = Groom(strands=strands)
+    with pytest.raises(ValueError, match=r"bind_to: 3 of 40 roots are farther than max_distance = 5 mm .*"
+                                         r"\(farthest: strand 17 at 30\.\d+ mm\); strands 5, 17, 33\."):
+        groom.bind_to(sphere)
+    with caplog.at_level("INFO"):
+        bound = groom.bind_to(sphere, max_distance=0.05)
+    stats = bound.metadata["binding"]
+    facet = r * (1 - np.cos(np.deg2rad(3.0)))  # icosphere(4) sits inside the sphere by less than this
+    assert stats["median_distance"] == pytest.approx(2e-4, abs=facet)
+    assert stats["max_distance"] == pytest.approx(0.03, abs=facet)
+    assert any("root-surface distance median" in rec.message for rec in caplog.records)
+    on = bound.root_positions(sphere.vertices).numpy()
+    assert np.abs(np.linalg.norm(on, axis=1) - r).max() < facet  # on the mesh
+    np.testing.assert_array_equal(bound.root_face_vertices.numpy(), np.asarray(sphere.faces)[bound.root_triangles])
+    np.testing.assert_allclose(bound.root_barycentrics.sum(1).numpy(), 1, atol=1e-6)
+    snapped = groom.bind_to(sphere, max_distance=0.05, snap=True)
+    np.testing.assert_allclose(np.stack([s[0] for s in snapped.strands]), on, atol=1e-7)
+    np.testing.assert_allclose(snapped.lengths(), groom.lengths(), rtol=1e-6)  # moved rigidly
+    with pytest.raises(ValueError, match="max_distance must be a non-negative number"):
+        groom.bind_to(sphere, max_distance=-1)

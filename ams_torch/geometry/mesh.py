@@ -22,7 +22,7 @@ import trimesh
 
 from ams_torch.geometry.units import MAX_MESH_WIDTH, apply_transform, check_plausible_size, import_transform
 
-__all__ = ["load_mesh", "read_tfxmesh", "check_mesh_arrays", "mesh_width"]
+__all__ = ["load_mesh", "read_tfxmesh", "check_mesh_arrays", "closest_points", "mesh_width"]
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +46,32 @@ def check_mesh_arrays(path: str, vertices: np.ndarray, faces: np.ndarray) -> Non
         row = int(np.flatnonzero((f < 0).any(1) | (f >= len(v)).any(1))[0])
         raise ValueError(f"{path}: face {row} refers to vertex {int(f[row][(f[row] < 0) | (f[row] >= len(v))][0])}, "
                          f"outside [0, {len(v)}) (face indices out of range)")
+
+
+def closest_points(mesh, points):
+    """Closest points of a triangle mesh to query points (point-cloud-utils' AABB tree).
+
+    mesh: anything with ``vertices`` (V, 3) and ``faces`` (F, 3), metres; points: (P, 3) metres.
+    Returns ``(distance (P,) float64 metres, face (P,) int64, barycentric (P, 3) float64,
+    closest (P, 3) float64 metres)``. Raises ``TypeError``/``ValueError`` for a bad mesh.
+    """
+    try:
+        import point_cloud_utils as pcu
+    except ImportError as err:  # pragma: no cover - dependency missing
+        raise ImportError("closest_points needs point-cloud-utils: pip install point-cloud-utils") from err
+    if not (hasattr(mesh, "vertices") and hasattr(mesh, "faces")):
+        raise TypeError(f"need a mesh with vertices and faces (e.g. trimesh.Trimesh); got {type(mesh).__name__}")
+    name = str(getattr(mesh, "metadata", {}).get("source") or "mesh")
+    v = np.ascontiguousarray(np.asarray(mesh.vertices, dtype=np.float64))
+    f = np.ascontiguousarray(np.asarray(mesh.faces, dtype=np.int64))
+    check_mesh_arrays(name, v, f)
+    p = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+    if len(p) == 0:
+        return np.zeros(0), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3))
+    dist, fid, bary = pcu.closest_points_on_mesh(p, v, f)
+    dist, fid, bary = np.atleast_1d(dist), np.atleast_1d(fid).astype(np.int64), np.atleast_2d(bary)
+    closest = np.einsum("pk,pkd->pd", bary, v[f[fid]])
+    return dist.astype(np.float64), fid, bary.astype(np.float64), closest
 
 
 def mesh_width(vertices: np.ndarray) -> float:
@@ -230,6 +256,7 @@ def load_mesh(path: Union[str, os.PathLike], *, units: Optional[str] = None, sca
         repair: optional clean-up: merge duplicate vertices, drop degenerate/duplicate faces,
             make the winding consistent, fill the holes trimesh can fill, fix normals. Holes
             that stay open are logged, not an error (open meshes are fine for collisions).
+            It renumbers vertices, so a ``.tfxmesh``'s per-vertex bone data is dropped.
 
     Returns:
         ``trimesh.Trimesh`` in metres, +y up. Open meshes are returned as they are; a closed,
@@ -255,7 +282,12 @@ def load_mesh(path: Union[str, os.PathLike], *, units: Optional[str] = None, sca
     else:
         mesh = _read_any(path)
     if repair:
+        per_vertex = [k for k in ("tfx_bone_indices", "tfx_bone_weights", "tfx_normals") if k in mesh.metadata]
         _repair(mesh, path)
+        if per_vertex:  # merging vertices breaks the one-row-per-file-vertex layout
+            for k in per_vertex:
+                del mesh.metadata[k]
+            log.warning("%s: repair=True renumbers the vertices; the per-vertex bone data was dropped", path)
     elif mesh.is_watertight and mesh.is_winding_consistent and mesh.volume < 0:
         mesh.invert()
     if not np.array_equal(matrix, np.eye(4)):

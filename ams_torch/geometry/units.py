@@ -28,8 +28,8 @@ from typing import Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-__all__ = ["UNITS", "import_transform", "apply_transform", "ImplausibleSizeWarning", "check_plausible_size",
-           "MAX_STRAND_LENGTH", "MAX_MESH_WIDTH", "Z_UP_TO_Y_UP"]
+__all__ = ["UNITS", "import_transform", "apply_transform", "linear_scale", "is_identity", "ImplausibleSizeWarning",
+           "check_plausible_size", "MAX_STRAND_LENGTH", "MAX_MESH_WIDTH", "Z_UP_TO_Y_UP"]
 
 #: metres per unit for the ``units`` names
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}

@@ -10,7 +10,12 @@ Root binding (grooms grown on a mesh): the root of strand s lies on triangle
 ``root_triangles[s]`` of the mesh, with barycentric coordinates ``root_barycentrics[s]`` over
 its corners ``root_face_vertices[s]`` (vertex indices, in the order of the face). With it,
 :meth:`Groom.root_positions` re-attaches the roots to a moved or deformed copy of the mesh and
-:meth:`Groom.reattach` carries whole strands along with their triangles.
+:meth:`Groom.reattach` carries whole strands along with their triangles. Grooms read from files
+have no binding until :meth:`Groom.bind_to` binds their roots to the nearest triangles of a
+head mesh (SPEC §14), reporting the root–surface distances.
+
+``Groom.width`` is the strand diameter in metres (default 70 µm), written by the formats that
+store a thickness.
 """
 from __future__ import annotations
 
@@ -410,29 +415,16 @@ class Groom:
             ValueError: roots beyond ``max_distance`` (the message names the count, the first
             strand indices and the farthest distance), a bad mesh or ``max_distance``.
         """
-        try:
-            import point_cloud_utils as pcu
-        except ImportError as err:  # pragma: no cover - dependency missing
-            raise ImportError("Groom.bind_to needs point-cloud-utils: pip install point-cloud-utils") from err
-        from ams_torch.geometry.mesh import check_mesh_arrays
+        from ams_torch.geometry.mesh import closest_points
 
-        if not (hasattr(mesh, "vertices") and hasattr(mesh, "faces")):
-            raise TypeError(f"bind_to needs a mesh with vertices and faces (e.g. trimesh.Trimesh); got "
-                            f"{type(mesh).__name__}")
         max_distance = float(max_distance)
         if not (math.isfinite(max_distance) and max_distance >= 0):
             raise ValueError(f"bind_to: max_distance must be a non-negative number of metres; got {max_distance!r}")
         name = str(getattr(mesh, "metadata", {}).get("source") or getattr(mesh, "metadata", {}).get("name") or "mesh")
-        verts = np.ascontiguousarray(np.asarray(mesh.vertices, dtype=np.float64))
-        faces = np.ascontiguousarray(np.asarray(mesh.faces, dtype=np.int64))
-        check_mesh_arrays(name, verts, faces)
-        roots = np.ascontiguousarray(np.stack([np.asarray(p[0], dtype=np.float64) for p in self.polylines()])
-                                     if self.num_strands else np.zeros((0, 3)))
-        if len(roots):
-            dist, fid, bary = pcu.closest_points_on_mesh(roots, verts, faces)
-            dist, fid, bary = np.atleast_1d(dist), np.atleast_1d(fid), np.atleast_2d(bary)
-        else:
-            dist, fid, bary = np.zeros(0), np.zeros(0, np.int64), np.zeros((0, 3))
+        roots = np.stack([np.asarray(p[0], dtype=np.float64) for p in self.polylines()]) if self.num_strands \
+            else np.zeros((0, 3))
+        dist, fid, bary, surface = closest_points(mesh, roots)
+        verts, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
         far = np.flatnonzero(dist > max_distance)
         if len(far):
             shown = ", ".join(str(int(i)) for i in far[:10]) + (", ..." if len(far) > 10 else "")
@@ -440,10 +432,8 @@ class Groom:
                              f"{max_distance * 1e3:.4g} mm from {name} (farthest: strand {int(far[np.argmax(dist[far])])} "
                              f"at {dist.max() * 1e3:.4g} mm); strands {shown}. Check the units, up_axis and transform "
                              "of the groom and the mesh, or raise max_distance.")
-        fid = fid.astype(np.int64)
         fv = faces[fid]
         corners = torch.as_tensor(verts[fv])  # (S, 3, 3)
-        surface = (torch.as_tensor(bary, dtype=torch.float64)[..., None] * corners).sum(-2).numpy()
         stats = dict(median_distance=float(np.median(dist)) if len(dist) else 0.0,
                      max_distance=float(dist.max()) if len(dist) else 0.0,
                      mean_distance=float(dist.mean()) if len(dist) else 0.0,
