@@ -104,8 +104,10 @@ def hair_hair_stage(grid: Optional[HairHairGrid], x: torch.Tensor, v: torch.Tens
         (plus the position push of detailed collisions, when enabled).
 
     No host synchronisation, no data-dependent branch or shape: capturable by
-    ``torch.compile(fullgraph=True)`` and CUDA graphs. Detailed collisions always run in torch,
-    after the grid part.
+    ``torch.compile(fullgraph=True)`` and CUDA graphs (for graphs, keep the grid, ``free``,
+    ``head_pose`` and a tensor ``mass`` on the device of x: a scalar ``mass``/``dt`` becomes a
+    fill, a host tensor would be a copy). Detailed collisions always run in torch, after the
+    grid part.
     """
     if grid is None:
         return x, v
@@ -113,8 +115,8 @@ def hair_hair_stage(grid: Optional[HairHairGrid], x: torch.Tensor, v: torch.Tens
     xf, vf, m, free, lead = _inputs(grid, x, v, mass, free)
     dtt = _dt_tensor(dt, x)
     frame = scene_frame(head_pose, lead, xf.shape[0], x.dtype, x.device)
-    origin = grid.origin.to(x.dtype)
-    target = grid.target_density.to(x.dtype)
+    origin = grid.origin.to(device=x.device, dtype=x.dtype)
+    target = grid.target_density.to(device=x.device, dtype=x.dtype)
     h, r, pic = grid.cell_size, grid.resolution, 1.0 - cfg.flip
     solve = (cfg.pressure_iterations, cfg.jacobi_omega, cfg.volume_stiffness, pic)
     if _use_native(backend, (xf, vf, m, frame, origin, target, dtt), x.dtype):
