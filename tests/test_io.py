@@ -590,3 +590,21 @@ def test_usda_with_flipped_bytes_is_a_groom_file_error(tmp_path):
     with pytest.raises(GroomFileError) as err:
         read_groom(tmp_path / "flip.usda")
     assert str(err.value).startswith(str(tmp_path / "flip.usda")) and "corrupt" in str(err.value)
+
+
+def test_npz_is_stored_uncompressed_and_old_compressed_files_still_read(tmp_path):
+    import zipfile
+
+    g = uniform_groom(s=4, n=5)
+    g.width = 6e-5
+    write_groom(tmp_path / "new.npz", g)
+    with zipfile.ZipFile(tmp_path / "new.npz") as z:
+        assert {i.compress_type for i in z.infolist()} == {zipfile.ZIP_STORED}
+    assert read_groom(tmp_path / "new.npz").width == pytest.approx(6e-5)
+    pts = g.rest_positions.numpy().reshape(-1, 3)
+    np.savez_compressed(tmp_path / "old.npz", format=np.array("ams_torch-groom-v1"), points=pts,
+                        counts=np.full(4, 5, np.int64), metadata=np.array("{}"))
+    old = read_groom(tmp_path / "old.npz")
+    assert torch.equal(old.rest_positions, g.rest_positions) and old.width == 7e-5
+    with pytest.raises(ValueError, match="Groom.width must be a positive finite number of metres; got -1"):
+        Groom(rest_positions=g.rest_positions, width=-1)
