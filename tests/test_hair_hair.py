@@ -348,37 +348,30 @@ def test_stage_is_differentiable():
 
 
 def test_runs_as_a_simulator_stage():
-    """Wired through the simulator's stage list: a groom at rest stays put, a shaken one stays
-    finite and differs from the run without hair–hair."""
+    """Enabled through the simulator: a groom at rest stays put, a shaken one stays finite and
+    differs from the run without hair–hair, and the grid is a registered submodule."""
     from ams_torch.sim.params import Params
     from ams_torch.sim.simulator import Simulator
 
     rest = head_groom(40, 8, length=0.12)
-    sim = Simulator(rest, Params(), dtype=torch.float64)
-    m = sim.model
-    grid = HairHair(resolution=16).build(m.rest_positions, m.particle_mass)
-    state0 = sim.initial_state()
-    plain = state0
+    sims = [Simulator(rest, Params(), dtype=torch.float64, hair_hair=hh) for hh in (None, HairHair(resolution=16))]
+    assert sims[0].hair_hair_grid is None
+    grid = sims[1].hair_hair_grid
+    assert any(buf is grid.origin for buf in sims[1].buffers())
+    still = [sim.initial_state() for sim in sims]
     for _ in range(5):
-        plain = sim.step(plain)
-    sim.stages.append(make_stage(grid, m.particle_mass, ~m.pinned))
-    still = state0
-    for _ in range(5):
-        still = sim.step(still)
-    assert torch.allclose(still.x, plain.x, rtol=0, atol=1e-9)  # at rest the stage does nothing
+        still = [sim.step(st) for sim, st in zip(sims, still)]
+    assert torch.allclose(still[1].x, still[0].x, rtol=0, atol=1e-9)  # at rest the stage does nothing
 
     shake = [Pose.from_rotvec([0.0, 0.0, 0.4 * math.sin(0.5 * f)], [0.05 * math.sin(0.7 * f), 0.0, 0.0],
                               dtype=torch.float64) for f in range(1, 9)]
-    runs = []
-    for stages in ([], [make_stage(grid, m.particle_mass, ~m.pinned)]):
-        sim.stages[:] = stages
-        st = state0
-        for pose in shake:
-            st = sim.step(st, pose)
-        runs.append(st)
+    runs = [sim.initial_state() for sim in sims]
+    for pose in shake:
+        runs = [sim.step(st, pose) for sim, st in zip(sims, runs)]
     assert torch.isfinite(runs[1].x).all() and torch.isfinite(runs[1].v).all()
     assert (runs[1].x - runs[0].x).abs().max() > 1e-4
-    assert torch.equal(runs[1].x[:, :2], runs[0].x[:, :2])  # pinned roots follow the head only
+    pinned = sims[1].model.pinned
+    assert torch.equal(runs[1].x[pinned], runs[0].x[pinned])  # pinned roots follow the head only
 
 
 # -- momentum-conserving pressure (SPEC §6) ---------------------------------------------------
