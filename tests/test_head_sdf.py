@@ -152,9 +152,9 @@ def test_load_mesh_rejects_broken_meshes_naming_the_file_and_problem(tmp_path):
         "points.obj": ("v 0 0 0\nv 1 0 0\nv 0 1 0\n", "no triangle faces found"),
         "nan.obj": ("v 0 0 nan\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", "1 of 3 vertices have NaN/Inf coordinates"),
         "index.obj": ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n", "face index is out of range"),
-        "index.ply": ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
-                      "property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
-                      "0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n", r"face 0 refers to vertex 7, outside \[0, 3\)"),
+        "index.ply": (("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                       "property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
+                       "0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n"), r"face 0 refers to vertex 7, outside \[0, 3\)"),
     }
     for name, (text, problem) in cases.items():
         path = tmp_path / name

@@ -217,7 +217,7 @@ def _read_any(path: str) -> trimesh.Trimesh:
         raise ValueError(f"{path}: corrupt mesh: a face index is out of range ({err})") from None
     except UnicodeDecodeError as err:
         raise ValueError(f"{path}: corrupt mesh: byte {err.start} is not valid text ({err.reason})") from None
-    except Exception as err:  # trimesh raises many types on bad input; name the file
+    except Exception as err:  # noqa: BLE001 - trimesh raises many types on bad input; name the file
         raise ValueError(f"{path}: cannot read the mesh ({type(err).__name__}: {err})") from None
     if not isinstance(loaded, trimesh.Trimesh):
         raise ValueError(f"{path}: no triangle mesh found (trimesh loaded a {type(loaded).__name__})")

@@ -96,7 +96,7 @@ def _read_body(path, data: bytes, fmt: str, elements, start: int) -> Dict[str, D
                                  f"{count * width} values, only {left} are left")
             cols = {p[0]: np.empty(count, dtype=np.float64) for p in props if p[2] is None}
             for row in range(count):
-                for pname, dtype, itype in props:
+                for pname, _, itype in props:
                     if pos >= len(flat):
                         raise fail(path, f"truncated PLY file: element '{name}' ends at row {row} of {count}")
                     if itype is None:

@@ -60,7 +60,7 @@ def _pxr(path):
 def write_usd(path, strands, metadata=None, binding=None, width: float = 7e-5) -> None:
     """Write polylines (metres) as a linear BasisCurves prim; ``binding`` = optional dict of arrays;
     ``width``: strand diameter, metres (constant widths)."""
-    Gf, Sdf, Tf, Usd, UsdGeom, Vt = _pxr(path)
+    Gf, Sdf, _, Usd, UsdGeom, Vt = _pxr(path)
     metadata = metadata or {}
     pts, counts = concat_strands(strands)
     stage = Usd.Stage.CreateNew(str(path))
@@ -153,7 +153,7 @@ def _curve_polylines(path, prim_path, pts: np.ndarray, counts: np.ndarray, ctype
 # reading
 # --------------------------------------------------------------------------------------------
 def _open_stage(path):
-    Gf, Sdf, Tf, Usd, UsdGeom, Vt = _pxr(path)
+    _, _, Tf, Usd, _, _ = _pxr(path)
     try:
         stage = Usd.Stage.Open(str(path))
     except Tf.ErrorException as err:
@@ -198,16 +198,16 @@ def _read_time(points_attr, Usd):
 
 def read_usd(path):
     """USD stage → (list of (n_i, 3) float32 arrays, metadata dict, binding dict or None)."""
-    Gf, Sdf, Tf, Usd, UsdGeom, Vt = _pxr(path)
+    _, _, Tf, Usd, UsdGeom, _ = _pxr(path)
     try:
-        return _read_usd(path, Gf, Tf, Usd, UsdGeom)
+        return _read_usd(path, Usd, UsdGeom)
     except UnicodeDecodeError as err:
         raise fail(path, f"corrupt or unreadable USD file: byte {err.start} is not valid UTF-8 text") from None
     except Tf.ErrorException as err:
         raise fail(path, f"corrupt or unreadable USD file ({' '.join(str(err).split())[:300]})") from None
 
 
-def _read_usd(path, Gf, Tf, Usd, UsdGeom):
+def _read_usd(path, Usd, UsdGeom):
     stage = _open_stage(path)
     mpu_authored = bool(stage.HasAuthoredMetadata(UsdGeom.Tokens.metersPerUnit))
     up_authored = bool(stage.HasAuthoredMetadata(UsdGeom.Tokens.upAxis))
