@@ -50,32 +50,35 @@ STORE = {"positions": (boolean, True), "velocities": (boolean, False), "guides":
          "compression": (one_of("gzip", "lzf", "none"), "gzip"), "compression_level": (integer(0, 9), 4)}
 STORE_DEFAULTS = {k: default for k, (_, default) in STORE.items()}
 SPLIT = {k: (number(0, 1), ABSENT) for k in SPLITS}
-TOP = {"name": (_name, ABSENT), "description": (string, ABSENT), "sequences": (integer(1, 2**40), ABSENT),
-       "frames": (integer(1, 2**31 - 1), ABSENT), "batch": (integer(1, 2**31 - 1), ABSENT),
+TOP = {"name": (_name, ABSENT), "description": (string, ABSENT), "sequences": (integer(1, 10**7), ABSENT),
+       "frames": (integer(1, 10**6), ABSENT), "batch": (integer(1, 10**5), ABSENT),
+       "dt": (number(0, open_lo=True), ABSENT), "substeps": (integer(1), ABSENT),
        "seed": (integer(0, 2**63 - 1), ABSENT), "dtype": (one_of("float32", "float64"), ABSENT),
        "store": (_table("store", STORE), ABSENT), "split": (_table("split", SPLIT), ABSENT),
-       **{k: (_any, ABSENT) for k in ("dt", "substeps", "head", "groom", "params", "stages", "hair_hair", "colliders",
+       **{k: (_any, ABSENT) for k in ("head", "groom", "params", "stages", "hair_hair", "colliders",
                                       "motion", "wind")}}
 _FIXED = ("head", "stages", "hair_hair", "dt", "substeps", "colliders")
 
 
 def check_top(raw: dict, where: str, base: str) -> None:
-    check_table(raw, TOP, "top level", where, base, RecipeError)
-    for key in ("sequences", "frames"):
-        if key not in raw:
-            _fail(where, f"{key} must be an integer >= 1; got nothing (the key is required)")
+    """The top-level, [store] and [split] tables of a recipe, and where samplers may be."""
     for key in _FIXED:
         if key in raw and has_sampler(raw[key]):
             _fail(where, f"{key} is fixed for a whole dataset; samplers are allowed in [groom], [params], "
                          f"[motion] and [wind]")
+    check_table(raw, TOP, "top level", where, base, RecipeError)
+    for key in ("sequences", "frames"):
+        if key not in raw:
+            _fail(where, f"{key} must be an integer >= 1; got nothing (the key is required)")
     for key in ("groom", "params", "motion", "wind"):
         if key in raw:
-            if not isinstance(raw[key], dict):
-                _fail(where, f"[{key}] must be a table; got {raw[key]!r}")
+            if not isinstance(raw[key], dict) or is_sampler(raw[key]):
+                _fail(where, f"[{key}] must be a table (samplers go inside it, one per value); got {raw[key]!r}")
             check_samplers(raw[key], where, f"[{key}]")
     for kind in motion_types() & set(raw.get("motion", {})):
-        if not isinstance(raw["motion"][kind], dict):
-            _fail(where, f"[motion.{kind}] must be a table of that motion's arguments; got {raw['motion'][kind]!r}")
+        if not isinstance(raw["motion"][kind], dict) or is_sampler(raw["motion"][kind]):
+            _fail(where, f"[motion.{kind}] must be a table of that motion's arguments (samplers go inside it); "
+                         f"got {raw['motion'][kind]!r}")
     p = raw.get("wind", {}).get("probability", 1.0)
     if not (is_number(p) and 0 <= p <= 1):
         _fail(where, f"[wind].probability must be a number in [0, 1]; got {p!r}")

@@ -46,8 +46,8 @@ def check_samplers(v, where: str, key: str) -> None:
             _fail(where, f"{key}: {kind} needs low <= high; got {arg!r}")
         if kind == "log_uniform" and lo <= 0:
             _fail(where, f"{key}: log_uniform needs positive bounds; got {arg!r}")
-        if kind == "randint" and not all(isinstance(a, int) for a in arg):
-            _fail(where, f"{key}: randint needs integer bounds; got {arg!r}")
+        if kind == "randint" and not all(isinstance(a, int) and -2**62 <= a < 2**62 for a in arg):
+            _fail(where, f"{key}: randint needs integer bounds (within ±2^62); got {arg!r}")
         return
     if isinstance(v, dict):
         if any(k in SAMPLERS for k in v) and len(v) > 1:

@@ -32,7 +32,7 @@ SCENE_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path
 ROTATION_TOLERANCE = 1e-5  #: max |RᵀR − I| of a rotation matrix in a scene file
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}  #: file unit -> metres
 ABSENT = _ABSENT = object()  # no default: the key stays absent unless given
-_CAUGHT = (TypeError, ValueError, ArithmeticError, IndexError, KeyError, FileNotFoundError)
+_CAUGHT = (TypeError, ValueError, ArithmeticError, IndexError, KeyError, AttributeError, FileNotFoundError)
 
 
 class SceneError(ValueError):
@@ -69,10 +69,11 @@ def is_number(v) -> bool:
 def number(lo: Optional[float] = None, hi: Optional[float] = None, *, open_lo: bool = False, integer: bool = False):
     """A finite number (or an int when ``integer``) in [lo, hi] (or (lo, hi] when ``open_lo``)."""
     what = "an integer" if integer else "a finite number"
+    show = (lambda b: str(b)) if integer else (lambda b: f"{b:g}")  # noqa: E731
     if lo is not None:
-        what += f" {'>' if open_lo else '>='} {lo:g}"
+        what += f" {'>' if open_lo else '>='} {show(lo)}"
     if hi is not None:
-        what += f" {'and ' if lo is not None else ''}<= {hi:g}"
+        what += f" {'and ' if lo is not None else ''}<= {show(hi)}"
 
     def check(v, key, ctx):
         ok = is_number(v) and (isinstance(v, int) or not integer)
