@@ -182,3 +182,18 @@ def test_export_of_a_real_simulation_with_the_default_head(tmp_path):
     np.testing.assert_allclose(m[:3, :3].T, rs[1], atol=1e-7)
     assert Gf.Vec3d(*m[3, :3]) == Gf.Vec3d(*ts[1].astype(np.float64))
     assert validation_errors(stage)[1] == []
+
+
+def test_head_from_a_scene_file_path_with_import_keys(tmp_path):
+    import trimesh
+
+    from ams_torch.apps.export import head_mesh_for_scene
+
+    box = trimesh.creation.box((20.0, 30.0, 10.0))  # centimetres, Z up
+    box.export(tmp_path / "head.obj")
+    head = {"mesh": str(tmp_path / "head.obj"), "scale": 0.01, "up_axis": "z",
+            "transform": {"rotation": np.eye(3).tolist(), "translation": [0.0, 0.1, 0.0]}}  # as the schema stores it
+    m = head_mesh_for_scene({"head": head})
+    np.testing.assert_allclose(m.extents, [0.2, 0.1, 0.3], rtol=1e-12)
+    np.testing.assert_allclose(m.bounds.mean(0), [0.0, 0.1, 0.0], atol=1e-12)
+    assert head_mesh_for_scene({"head": {"mesh": "none"}}) is None

@@ -309,6 +309,9 @@ def test_read_groom_units_up_axis_and_transform_in_that_order(tmp_path):
     m[:3, :3], m[:3, 3] = rot, t
     four = read_groom(tmp_path / "g.data", scale=0.5, up_axis="z", transform=m)
     assert torch.equal(four.rest_positions, both.rest_positions)
+    table = read_groom(tmp_path / "g.data", scale=0.5, up_axis="z",
+                       transform={"rotation": rot.tolist(), "translation": t.tolist()})  # as scene files give it
+    assert torch.equal(table.rest_positions, both.rest_positions)
     np.testing.assert_allclose(np.asarray(four.metadata["import_transform"])[:3, 3], t)
     # lengths scale with the units, not with the rigid parts
     np.testing.assert_allclose(both.lengths(), 0.5 * g.lengths(), rtol=1e-5)
@@ -335,6 +338,8 @@ def test_import_keys_are_validated():
         import_transform(transform=bad)
     with pytest.raises(ValueError, match=r"4x4 matrix or a pair \(R \(3, 3\), t \(3,\)\); got shape \(3, 3\)"):
         import_transform(transform=np.eye(3))
+    with pytest.raises(ValueError, match=r"unknown key\(s\) \['shift'\]"):
+        import_transform(transform={"rotation": np.eye(3), "shift": [0, 0, 0]})
     # the tolerance follows the dtype: a float32 rotation is accepted at float32 precision
     c, s = np.float32(np.cos(0.7)), np.float32(np.sin(0.7))
     r32 = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=np.float32)

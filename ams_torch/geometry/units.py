@@ -10,8 +10,9 @@ authored with three keys, applied in this order:
    det +1, no mirroring): +z becomes +y and −y (the usual "front" of a Z-up character) +z, the
    direction the library's faces look.
 3. **transform** — an optional rigid motion in the library frame (metres, after steps 1–2):
-   a 4×4 matrix acting on column vectors ``[x; 1]`` or a pair ``(R, t)`` with ``R`` a 3×3
-   rotation and ``t`` (3,) metres. ``R`` must be a rotation (orthonormal, det +1) to within a
+   a 4×4 matrix acting on column vectors ``[x; 1]``, a pair ``(R, t)`` with ``R`` a 3×3
+   rotation and ``t`` (3,) metres, or the scene files' table ``{"rotation": R,
+   "translation": t}`` (either may be left out). ``R`` must be a rotation (orthonormal, det +1) to within a
    tolerance set by its dtype (``sqrt(eps)``: 1.5e-8 for float64, 3.5e-4 for float32), so type
    rotations with at least 8 significant digits or pass float32 arrays.
 
@@ -24,6 +25,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Mapping
 from typing import Optional, Sequence, Tuple, Union
 
 import numpy as np
@@ -88,7 +90,12 @@ def _check_rotation(r: np.ndarray, tol: float) -> None:
 
 
 def _rigid(transform, tol: Optional[float]) -> np.ndarray:
-    """A 4x4 float64 rigid matrix from a 4x4 or (R, t), validated."""
+    """A 4x4 float64 rigid matrix from a 4x4, (R, t) or {"rotation": R, "translation": t}, validated."""
+    if isinstance(transform, Mapping):
+        unknown = sorted(set(map(str, transform)) - {"rotation", "translation"})
+        if unknown:
+            raise ValueError(f"transform: unknown key(s) {unknown}; a transform table has rotation and translation")
+        transform = (transform.get("rotation", np.eye(3)), transform.get("translation", np.zeros(3)))
     if isinstance(transform, (tuple, list)) and len(transform) == 2 and np.ndim(transform[1]) == 1 \
             and np.size(transform[1]) == 3:
         r = _as_float_array(transform[0], "R")
@@ -125,7 +132,8 @@ def import_transform(units: Optional[str] = None, scale: Optional[float] = None,
             Neither: 1 (the file is in metres).
         up_axis: "y" (default) or "z" (rotated to +y up: (x, y, z) → (x, z, −y)).
         transform: optional rigid motion applied last, in metres in the +y-up frame: a 4×4
-            matrix (column vectors, last row [0, 0, 0, 1]) or ``(R (3, 3), t (3,) metres)``.
+            matrix (column vectors, last row [0, 0, 0, 1]), ``(R (3, 3), t (3,) metres)`` or
+            ``{"rotation": R, "translation": t}``.
         tolerance: override the orthonormality tolerance (default ``sqrt(eps)`` of the
             transform's dtype).
 
