@@ -219,6 +219,12 @@ def test_stage_parity(native, device, dtype, detailed):
         # contacts see x' rounded to float32 by each path: a normal turns by ~ulp(x)/radius
         bound = max(bound, 8 * torch.finfo(dtype).eps * float(s["x"].abs().max()) / grid.config.collision_radius)
     assert rel(v_n - s["v"], v_t - s["v"]) <= bound
+    per_strand = s["free"].expand(120, -1).clone()  # a (S, N) mask, here with one more pinned strand
+    per_strand[3] = False
+    x_s, v_s = hair_hair_stage(grid, s["x"], s["v"], s["mass"], s["pose"], DT, per_strand, backend="native")
+    x_r, v_r = hair_hair_stage(grid, s["x"], s["v"], s["mass"], s["pose"], DT, per_strand, backend="torch")
+    assert torch.equal(x_s[:, 3], s["x"][:, 3]) and torch.equal(v_s[:, 3], s["v"][:, 3])
+    assert rel(v_s - s["v"], v_r - s["v"]) <= bound
     _check_positions(x_n, x_t, s["x"], dtype, grid.resolution)
     assert float((v_t - s["v"]).abs().max()) > 1e-2  # the stage did change velocities
 

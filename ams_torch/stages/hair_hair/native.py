@@ -118,7 +118,7 @@ def _pressure_fake(faces, target_density, dt, cell_size, resolution, iterations,
 def g2p_op(x: torch.Tensor, v: torch.Tensor, field: torch.Tensor, frame: torch.Tensor, origin: torch.Tensor,
            free: torch.Tensor, dt: torch.Tensor, cell_size: float, resolution: int, pic: float,
            require_native: bool) -> tuple[torch.Tensor, torch.Tensor]:
-    """x, v: (B, P, 3); field: (B, 3, F); free: (N,) bool; dt: (). Returns x', v' (B, P, 3)."""
+    """x, v: (B, P, 3); field: (B, 3, F); free: (M,) bool, M | P; dt: (). Returns x', v' (B, P, 3)."""
     return g2p_torch(x, v, field, frame, origin, free, dt, cell_size, resolution, pic)
 
 

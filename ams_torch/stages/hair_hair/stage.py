@@ -45,11 +45,11 @@ def _inputs(grid: HairHairGrid, x: torch.Tensor, v: torch.Tensor, mass, free: Op
         raise ValueError(f"mass of shape {tuple(mass.shape)} does not broadcast to {tuple(lead) + (s, n)}")
     if free is None:
         free = torch.ones(n, dtype=torch.bool, device=x.device)
-    elif not isinstance(free, torch.Tensor) or free.shape != (n,):
-        raise ValueError(f"free must be a tensor of shape ({n},); got "
+    elif not isinstance(free, torch.Tensor) or free.shape not in ((n,), (s, n)):
+        raise ValueError(f"free must be a tensor of shape ({n},) or ({s}, {n}); got "
                          f"{tuple(free.shape) if isinstance(free, torch.Tensor) else type(free).__name__}")
-    else:
-        free = free.to(device=x.device, dtype=torch.bool)
+    else:  # (M,) with particle p of a scene free when free[p mod M]
+        free = free.to(device=x.device, dtype=torch.bool).reshape(-1)
     return x.reshape(b, p, 3), v.reshape(b, p, 3), m, free, lead
 
 
@@ -93,8 +93,9 @@ def hair_hair_stage(grid: Optional[HairHairGrid], x: torch.Tensor, v: torch.Tens
             broadcastable to ``...``); missing velocities count as zero; None = identity at rest.
         dt: frame length, seconds: a positive number or a 0-d tensor (not checked for sign: no
             host sync).
-        free: (N,) bool, particles the stage may move (default: all). Pinned particles still
-            contribute mass to the grid but are returned unchanged.
+        free: (N,) bool (the same for every strand) or (S, N) bool, particles the stage may
+            move (default: all). Pinned particles still contribute mass to the grid but are
+            returned unchanged.
         backend: ``"auto"`` (default): the native kernels when they are built, the dtype is
             float32/float64 and nothing requires grad (``AMS_TORCH_NATIVE=0`` disables them);
             otherwise the torch definition. ``"native"``: the native kernels or an error.
@@ -155,8 +156,8 @@ def make_stage(grid: Optional[HairHairGrid], mass, free: Optional[torch.Tensor] 
                backend: str = "auto") -> Optional[Callable]:
     """Wrap :func:`hair_hair_stage` as an integrator stage ``(x, v, pose, dt, state) -> (x, v)``.
 
-    Args: grid (None → returns None), mass kg broadcastable to (..., S, N), free (N,) bool,
-    backend as in :func:`hair_hair_stage`.
+    Args: grid (None → returns None), mass kg broadcastable to (..., S, N), free (N,) or (S, N)
+    bool, backend as in :func:`hair_hair_stage`.
     """
     if grid is None:
         return None

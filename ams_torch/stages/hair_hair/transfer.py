@@ -145,8 +145,8 @@ def g2p_torch(x: torch.Tensor, v: torch.Tensor, field: torch.Tensor, frame: torc
               stencils: Optional[list] = None):
     """G2P with the FLIP/PIC blend and the change back to the world (definition of ``g2p``).
 
-    field: (B, 3, F) m/s, ``pic · u + Δu`` on the faces (see ``pressure.py``); free: (N,) bool,
-    particle p of a scene is free when ``free[p mod N]``; dt: s (float or 0-d tensor); pic: the
+    field: (B, 3, F) m/s, ``pic · u + Δu`` on the faces (see ``pressure.py``); free: (M,) bool
+    with M dividing P (N or S·N), particle p of a scene is free when ``free[p mod M]``; dt: s (float or 0-d tensor); pic: the
     PIC share 1 − flip. Per particle (head frame, I = trilinear interpolation, wsum = its total
     weight on the grid): ``Δv = I(field) − pic · wsum · v_rel``, i.e. the FLIP update
     ``v + I(Δu)`` blended with the PIC velocity ``I(u + Δu)`` (the weight missing outside the
