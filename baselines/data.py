@@ -1,6 +1,14 @@
 """A small simulated dataset for the baselines: generator and reader (HDF5).
 
-File layout (lengths in metres, float32; ``F`` frames, ``S`` strands, ``N`` particles):
+:class:`HairDataset` reads two formats: the small files of :func:`generate_dataset` (below) and
+the datasets of ``ams-torch generate`` (a folder or one shard file; docs/dataset_format.md):
+their sequences must share one groom (a recipe whose ``[groom]`` has no samplers and a fixed
+``seed``, or the sequences of one batch group), and the guide order is the stored
+``guide_indices`` (``[store] guides = G``: the first k of them are the k-guide choice), else the
+farthest-point order of the roots.
+
+File layout of :func:`generate_dataset` (lengths in metres, float32; ``F`` frames, ``S`` strands,
+``N`` particles):
 
 - ``/rest`` (S, N, 3): rest shape in the head frame; ``/fps_order`` (S,): farthest-point order of
   the roots (the first G entries are the G-guide choice of :func:`baselines.select_guides`).
@@ -24,7 +32,7 @@ from ams_torch.testing import shake_poses, sphere_groom
 from .guides import fps_order
 
 __all__ = ["random_motion", "sweep_poses", "simulate_sequence", "generate_dataset", "HairDataset",
-           "read_rest"]
+           "read_rest", "is_generated"]
 
 
 def random_motion(frames: int, dt: float, rng: np.random.Generator, scale: float = 1.0) -> List[at.Pose]:
@@ -97,30 +105,100 @@ def generate_dataset(path: str, strands: int = 256, particles: int = 12, sequenc
     return path
 
 
+def is_generated(path: str) -> bool:
+    """Whether ``path`` is a dataset of ``ams-torch generate`` (a folder, or a file whose
+    ``format`` attribute says so) rather than a file of :func:`generate_dataset`."""
+    if os.path.isdir(path):
+        return True
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"no such dataset {path!r}")
+    try:
+        with h5py.File(path, "r") as h:
+            return h.attrs.get("format") == "ams_torch.dataset"
+    except OSError as err:
+        raise ValueError(f"{path}: cannot be opened as HDF5 (truncated or corrupt file): {err}") from None
+
+
+def _sequence_index(name) -> int:
+    text = str(name)
+    digits = text[4:] if text.startswith("seq_") else text
+    if not digits.isdigit():
+        raise ValueError(f"sequence {name!r}: give an index (3) or a group name (seq_000003)")
+    return int(digits)
+
+
+def _load_generated(path: str, sequences, split) -> tuple:
+    """(names, rest (S, N, 3), guide order, dt, per-sequence arrays) of an ``ams-torch generate`` dataset."""
+    from ams_torch.apps.data import HairSequenceDataset
+
+    keep = None if sequences is None else [_sequence_index(n) for n in sequences]
+    fields = ["positions", "rotations", "translations"]
+    ds = HairSequenceDataset(path, window=1, fields=fields, sequences=keep, split=split)
+    indices = [idx for _, _, idx, _ in ds.sequences]
+    arrays = {i: ds.sequence_arrays(i) for i in indices}
+    rests = {}
+    for i in indices:
+        rests.setdefault(arrays[i]["rest_positions"].tobytes(), []).append(i)
+    if len(rests) > 1:
+        groups = sorted({arrays[i]["group"] for i in indices})
+        raise ValueError(f"{path}: the sequences come from {len(rests)} different grooms (batch groups {groups}); the "
+                         f"upsampler trains on one groom: pick the sequences of one batch group (--sequences), or "
+                         f"use a recipe whose [groom] has no samplers and a fixed seed")
+    first = arrays[indices[0]]
+    rest = torch.from_numpy(np.asarray(first["rest_positions"], dtype=np.float32))
+    order = torch.from_numpy(first["guide_indices"]).long() if "guide_indices" in first \
+        else fps_order(rest[:, 0], rest.shape[0])
+    data = []
+    for i in indices:
+        f = ds.sequence_frames(i)
+        data.append({"positions": torch.from_numpy(f["positions"].astype(np.float32)),
+                     "rotation": torch.from_numpy(f["rotations"]), "translation": torch.from_numpy(f["translations"])})
+    ds.close()
+    return [f"seq_{i:06d}" for i in indices], rest, order, float(first["dt"]), data
+
+
 def read_rest(path: str):
-    """(rest (S, N, 3) float32 tensor, fps_order (S,) long tensor) of a dataset file."""
+    """(rest (S, N, 3) float32 tensor, guide order long tensor) of a dataset (either format):
+    ``fps_order`` (S,) of a :func:`generate_dataset` file, or the stored ``guide_indices`` (G,)
+    of an ``ams-torch generate`` dataset."""
+    if is_generated(path):
+        ds = HairDataset(path)
+        return ds.rest, ds.fps_order
     with h5py.File(path, "r") as h:
         return torch.from_numpy(h["rest"][...]), torch.from_numpy(h["fps_order"][...]).long()
 
 
 class HairDataset(torch.utils.data.Dataset):
-    """Windows of ``window`` consecutive frames from the sequences of a dataset file.
+    """Windows of ``window`` consecutive frames from the sequences of a dataset: a file of
+    :func:`generate_dataset` or a dataset of ``ams-torch generate`` (see the module docstring).
 
     Loads the chosen sequences into memory. Item i is a dict with ``positions`` (W, S, N, 3) m,
     ``rotation`` (W, 3, 3), ``translation`` (W, 3) m, ``sequence`` (int) and ``start`` (frame).
     Windows start every ``stride`` frames; their order is fixed (sequence, then start).
+    ``sequences``: names (``seq_000003``; for generated datasets also indices); ``split``
+    (generated datasets): ``"train"``, ``"valid"`` or ``"test"``. ``fps_order``: the guide order
+    (all S strands, or the G stored guides of a generated dataset).
     """
 
-    def __init__(self, path: str, window: int = 1, stride: int = 1, sequences: Optional[Sequence[str]] = None):
-        with h5py.File(path, "r") as h:
-            names = sorted(k for k in h.keys() if k.startswith("seq_"))
-            self.names = [n for n in names if sequences is None or n in sequences]
-            self.rest = torch.from_numpy(h["rest"][...])
-            self.fps_order = torch.from_numpy(h["fps_order"][...]).long()
-            self.dt = float(h.attrs["dt"])
-            self.data: List[Dict[str, torch.Tensor]] = [
-                {k: torch.from_numpy(h[n][k][...]) for k in ("positions", "rotation", "translation")}
-                for n in self.names]
+    def __init__(self, path: str, window: int = 1, stride: int = 1, sequences: Optional[Sequence[str]] = None,
+                 split: Optional[str] = None):
+        if is_generated(path):
+            self.names, self.rest, self.fps_order, self.dt, self.data = _load_generated(path, sequences, split)
+        else:
+            if split is not None:
+                raise ValueError(f"{path}: split={split!r} needs an `ams-torch generate` dataset (this file has no "
+                                 f"splits)")
+            with h5py.File(path, "r") as h:
+                names = sorted(k for k in h.keys() if k.startswith("seq_"))
+                self.names = [n for n in names if sequences is None or n in sequences]
+                self.rest = torch.from_numpy(h["rest"][...])
+                self.fps_order = torch.from_numpy(h["fps_order"][...]).long()
+                self.dt = float(h.attrs["dt"])
+                self.data: List[Dict[str, torch.Tensor]] = [
+                    {k: torch.from_numpy(h[n][k][...]) for k in ("positions", "rotation", "translation")}
+                    for n in self.names]
+        if not self.names:
+            raise ValueError(f"{path}: no sequences selected (sequences={sequences!r})")
         if window < 1 or stride < 1:
             raise ValueError("window and stride must be ≥ 1")
         self.window = window

@@ -1,6 +1,9 @@
-"""Train the guide upsampler (baselines/upsampler.py) on a dataset from baselines/data.py.
+"""Train the guide upsampler (baselines/upsampler.py) on a dataset: a file of
+``baselines.data.generate_dataset`` or an ``ams-torch generate`` dataset (a folder or a shard
+file) whose sequences share one groom and whose recipe stores enough guides (``[store] guides``).
 
     python scripts/train_upsampler.py --data out/baselines/data.h5 --guides 128 --out out/up128.pt
+    python scripts/train_upsampler.py --data out/upsampler_tiny --split train --guides 16 --out out/up16.pt
     torchrun --nnodes=1 --nproc_per_node=2 --master_addr=127.0.0.1 --master_port=29512 \
         scripts/train_upsampler.py ...        # DDP: gloo on CPU (loopback only), nccl on GPUs
 
@@ -28,7 +31,9 @@ from baselines.upsampler import GuideUpsampler, load_checkpoint, save_checkpoint
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", required=True, help="HDF5 file written by baselines.data.generate_dataset")
+    p.add_argument("--data", required=True, help="HDF5 file of baselines.data.generate_dataset, or an "
+                   "`ams-torch generate` dataset (folder or shard file)")
+    p.add_argument("--split", choices=("train", "valid", "test"), help="generated datasets: train on this split only")
     p.add_argument("--out", required=True, help="checkpoint path (.pt)")
     p.add_argument("--guides", type=int, default=128, help="number of guides (FPS order of the file)")
     p.add_argument("--k", type=int, default=4, help="guides per dense strand")
@@ -38,7 +43,8 @@ def parse_args(argv=None):
     p.add_argument("--batch", type=int, default=2048, help="global batch, in (frame, strand) samples")
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--sequences", default=None, help="comma-separated sequence names (default: all)")
+    p.add_argument("--sequences", default=None, help="comma-separated sequence names (seq_000003) or, for "
+                   "generated datasets, indices (default: all)")
     p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     p.add_argument("--checkpoint-every", type=int, default=100)
     p.add_argument("--resume", action="store_true", help="continue from --out if it exists")
@@ -103,7 +109,10 @@ def train(args) -> dict:
     if args.batch % world:
         raise ValueError(f"--batch {args.batch} must be divisible by the world size {world}")
     seqs = None if args.sequences is None else args.sequences.split(",")
-    ds = HairDataset(args.data, sequences=seqs)
+    ds = HairDataset(args.data, sequences=seqs, split=args.split)
+    if not 1 <= args.guides <= len(ds.fps_order):
+        raise ValueError(f"--guides {args.guides}: the dataset {args.data} offers {len(ds.fps_order)} guide strands "
+                         f"(an `ams-torch generate` dataset: its recipe's [store] guides)")
     x, rot, trans = ds.frames()
     x, rot, trans = x.to(device, dtype), rot.to(device, dtype), trans.to(device, dtype)
     nframes, s = x.shape[0], x.shape[1]

@@ -171,7 +171,7 @@ def tiny_data(tmp_path_factory):
 
 
 def _args(data, out, steps, extra=()):
-    return ["--data", data, "--out", out, "--guides", "8", "--steps", str(steps), "--batch", "256",
+    return ["--data", data, "--out", out, "--steps", str(steps), "--batch", "256", "--guides", "8",
             "--lr", "3e-3", "--dtype", "float64", "--hidden", "32", "--layers", "2", "--no-progress",
             "--checkpoint-every", "1000", "--threads", "0", *extra]
 
@@ -264,3 +264,58 @@ def test_evaluate_baselines_smoke(tmp_path):
     err = {g: np.mean([r["mean_mm"] for r in res["rows"] if r["guides"] == g and r["method"] == "skinning"])
            for g in (8, 32)}
     assert err[32] < err[8]
+
+
+# -- training on an `ams-torch generate` dataset ---------------------------------------------------
+@pytest.fixture(scope="module")
+def generated(tmp_path_factory):
+    """datasets/upsampler_tiny.toml made small: 4 sequences of 6 frames, 48 strands, 16 guides stored."""
+    from ams_torch.apps.datagen import generate
+    from ams_torch.apps.recipe import load_recipe
+
+    r = load_recipe(str(_ROOT / "datasets" / "upsampler_tiny.toml"),
+                    {"sequences": 4, "frames": 6, "batch": 2, "store": {"guides": 16},
+                     "groom": {"kind": "sphere", "strands": 48, "particles": 8, "length": 0.15},
+                     "split": {"train": 0.5, "valid": 0.0, "test": 0.5}})
+    out = tmp_path_factory.mktemp("generated") / "up"
+    generate(r, str(out), progress=False, log=lambda s: None)
+    return str(out), r
+
+
+def test_reader_and_training_on_a_generated_dataset(generated, tmp_path):
+    from ams_torch.apps.data import HairSequenceDataset
+
+    out, r = generated
+    ds = HairDataset(out)
+    stored = HairSequenceDataset(out).sequence_arrays(0)
+    assert ds.names == [f"seq_{i:06d}" for i in range(4)] and ds.rest.shape == (48, 8, 3)
+    assert torch.equal(ds.fps_order, torch.from_numpy(stored["guide_indices"])) and len(ds.fps_order) == 16
+    assert torch.equal(ds.fps_order[:8], select_guides(ds.rest[:, 0], 8))  # the stored order is the FPS order
+    x, rot, trans = ds.frames()
+    assert x.shape == (4 * 6, 48, 8, 3) and rot.shape == (24, 3, 3)
+    roots = ds.rest[:, 0] @ rot.transpose(-1, -2) + trans[:, None]
+    assert (roots - x[:, :, 0]).abs().max() < 1e-5  # positions in the world, rest in the head frame
+    train = HairDataset(out, split="train")
+    assert train.names == [f"seq_{i:06d}" for i in range(4) if r.sequence_split(i) == "train"] and len(train.names) == 2
+    tu = _train_module()
+    res = tu.main(_args(out, str(tmp_path / "g.pt"), 20, ["--split", "train"]))
+    h = res["history"]
+    assert len(h) == 20 and all(np.isfinite(h)) and sum(h[-5:]) < 0.8 * sum(h[:5])
+    _, blob = load_checkpoint(str(tmp_path / "g.pt"))
+    assert torch.equal(blob["guides"], ds.fps_order[:8])
+    with pytest.raises(ValueError, match="--guides 32: the dataset .* offers 16 guide strands"):
+        tu.main(_args(out, str(tmp_path / "h.pt"), 1, ["--guides", "32"]))
+
+
+def test_generated_dataset_of_several_grooms_is_refused(tmp_path):
+    from ams_torch.apps.datagen import generate
+    from ams_torch.apps.recipe import load_recipe
+
+    r = load_recipe(str(_ROOT / "datasets" / "upsampler_tiny.toml"),
+                    {"sequences": 2, "frames": 2, "batch": 1, "store": {"guides": 4},
+                     "groom": {"kind": "sphere", "strands": 12, "particles": 6, "length": {"uniform": [0.1, 0.2]}}})
+    out = str(tmp_path / "two")
+    generate(r, out, progress=False, log=lambda s: None)
+    with pytest.raises(ValueError, match=r"2 different grooms \(batch groups \[0, 1\]\)"):
+        HairDataset(out)
+    assert HairDataset(out, sequences=["seq_000001"]).names == ["seq_000001"]

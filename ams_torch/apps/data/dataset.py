@@ -41,8 +41,9 @@ def read_dataset_sequence(root, index: Optional[int] = None) -> dict:
     fi, name, idx, _ = ds.sequences[0]
     g = ds._file(fi)[name]
     keys = [k for k in ("positions", "guide_positions", "rotations", "translations", "collider_rotations",
-                        "collider_translations", "rest_positions") if k in g]
-    out = {k: ds._read(fi, name, k, slice(None)) for k in keys}
+                        "collider_translations") if k in g]
+    out = ds.sequence_frames(idx, keys)
+    out["rest_positions"] = ds.sequence_arrays(idx)["rest_positions"]
     if "positions" not in out:
         out["positions"] = out.pop("guide_positions")
     out["positions"] = out["positions"].astype(np.float32)
@@ -211,19 +212,29 @@ class HairSequenceDataset(torch.utils.data.Dataset):
         out["start"] = start
         return out
 
+    def _slot(self, index: int) -> Tuple[int, str]:
+        for fi, name, idx, _ in self.sequences:
+            if idx == index:
+                return fi, name
+        raise KeyError(f"sequence {index} is not in this dataset")
+
+    def sequence_frames(self, index: int, fields: Optional[Sequence[str]] = None) -> Dict[str, np.ndarray]:
+        """Every frame of the per-frame arrays ``fields`` (default: this dataset's fields) of
+        sequence ``index``, as stored (float16 stays float16), verified like items."""
+        fi, name = self._slot(index)
+        return {k: self._read(fi, name, k, slice(None)) for k in (self.fields if fields is None else fields)}
+
     def sequence_arrays(self, index: int) -> Dict[str, np.ndarray]:
         """The per-sequence arrays (rest_positions (S, N, 3) m, root binding, guide_indices), the
         parsed JSON attributes (motion, wind, groom, params) and the ``split`` of sequence ``index``."""
-        for fi, name, idx, _ in self.sequences:
-            if idx == index:
-                g = self._file(fi)[name]
-                out = {k: self._read(fi, name, k, slice(None)) for k in PER_SEQUENCE if k in g}
-                for k in ("motion", "wind", "groom", "params"):
-                    if k in g.attrs:
-                        out[k] = json.loads(g.attrs[k])
-                out["split"] = str(g.attrs.get("split", ""))
-                return out
-        raise KeyError(f"sequence {index} is not in this dataset")
+        fi, name = self._slot(index)
+        g = self._file(fi)[name]
+        out = {k: self._read(fi, name, k, slice(None)) for k in PER_SEQUENCE if k in g}
+        for k in ("motion", "wind", "groom", "params"):
+            if k in g.attrs:
+                out[k] = json.loads(g.attrs[k])
+        out.update(split=str(g.attrs.get("split", "")), group=int(g.attrs["group"]), dt=float(g.attrs["dt"]))
+        return out
 
     def close(self) -> None:
         for h in getattr(self, "_handles", {}).values():
