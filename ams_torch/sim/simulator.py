@@ -247,10 +247,18 @@ class Simulator(torch.nn.Module):
         """
         control = self.control(state, pose, collider_poses=collider_poses, external_force=external_force)
         new = step_mod.step(self.model, state, control, self.config, timer)
-        self._frames += 1
         every = self.params.check_every
-        if every and self._frames % every == 0:
-            step_mod.check_state(new, self.config)
+        if every and not torch.compiler.is_compiling():  # compiled: call sim.check(state) yourself
+            self._frames += 1
+            if self._frames % every == 0:
+                self.check(new)
         return new
+
+    def check(self, state: State) -> None:
+        """Read the state's divergence flag (one host sync) and raise
+        :class:`~ams_torch.sim.step.SimulationDiverged` naming the first bad frame and strands if it
+        is set. ``step`` calls it every ``params.check_every`` frames, except under ``torch.compile``,
+        where the caller decides when to check (the flag keeps the first bad frame meanwhile)."""
+        step_mod.check_state(state, self.config)
 
     forward = step

@@ -130,7 +130,7 @@ def _backward(ctx, grad_x: torch.Tensor):
 solve_banded_op.register_autograd(_backward, setup_context=_setup_context)
 
 
-def solve_banded(blocks: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
+def solve_banded(blocks: torch.Tensor, rhs: torch.Tensor, check: bool = True) -> torch.Tensor:
     """Solve the symmetric positive definite block-heptadiagonal strand systems ``A x = rhs``.
 
     Args:
@@ -139,11 +139,17 @@ def solve_banded(blocks: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
             ignored). Units of the implicit-step matrix (kg).
         rhs: (..., N, 3) (kg·m/s for the velocity solve). Leading dims of ``blocks`` and
             ``rhs`` broadcast against each other; dtypes are promoted to a common one.
+        check: raise ``torch.linalg.LinAlgError`` naming the first strand whose system is not
+            SPD (a non-positive pivot), or holds NaN/Inf, instead of returning NaN for it. Costs
+            one ``isfinite`` pass over x and one host synchronisation per call (measured in
+            docs/benchmarks/solver.md); the simulator's hot path passes ``check=False`` and relies
+            on its divergence guard.
     Returns:
         x: (..., N, 3) with the broadcast leading dims, e.g. velocities in m/s.
 
-    Differentiable in both arguments (adjoint solve), traceable by ``torch.compile``; runs
-    the native CPU/CUDA kernel when it could be built (see ``ams_torch.native_status()``).
+    Differentiable in both arguments (adjoint solve), traceable by ``torch.compile`` (with
+    ``check=False``); runs the native CPU/CUDA kernel when it could be built (see
+    ``ams_torch.native_status()``).
     """
     if blocks.dim() < 4 or tuple(blocks.shape[-3:]) != (BANDWIDTH + 1, 3, 3):
         raise ValueError(f"blocks must have shape (..., N, 4, 3, 3); got {tuple(blocks.shape)}")
@@ -156,4 +162,22 @@ def solve_banded(blocks: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
     strands = math.prod(batch)
     blocks = blocks.to(dtype).expand(batch + blocks.shape[-4:]).reshape(strands, n, BANDWIDTH + 1, 3, 3)
     rhs = rhs.to(dtype).expand(batch + rhs.shape[-2:]).reshape(strands, n, 3)
-    return solve_banded_op(blocks, rhs).reshape(batch + (n, 3))
+    x = solve_banded_op(blocks, rhs)
+    if check:
+        _check_solution(x, blocks, rhs, batch)
+    return x.reshape(batch + (n, 3))
+
+
+def _check_solution(x: torch.Tensor, blocks: torch.Tensor, rhs: torch.Tensor, batch) -> None:
+    """Raise LinAlgError for the first strand whose solution is not finite (see solve_banded)."""
+    good = torch.isfinite(x.detach()).flatten(1).all(1)
+    if bool(good.all()):
+        return
+    first = int(torch.nonzero(~good)[0])
+    where = tuple(int(i) for i in torch.unravel_index(torch.tensor(first), tuple(batch))) if len(batch) else ()
+    count = int((~good).sum())
+    if not bool(torch.isfinite(blocks[first]).all()) or not bool(torch.isfinite(rhs[first]).all()):
+        why = "its blocks or right-hand side hold NaN/Inf"
+    else:
+        why = "its matrix is not symmetric positive definite (a non-positive pivot in the Cholesky factorisation)"
+    raise torch.linalg.LinAlgError(f"solve_banded: strand {where or first} ({count} of {x.shape[0]} failing): {why}")
