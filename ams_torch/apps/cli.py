@@ -191,13 +191,13 @@ def _cmd_simulate(args) -> int:
           f"built in {time.perf_counter() - t0:.1f} s")
     try:
         result = simulate(run, progress=not args.quiet)
-    except SimulationDiverged as err:
+    except (SimulationDiverged, ValueError) as err:  # a NaN input: diverged, or refused by the step
         motions = [("[motion]", run.motion)] + [(f"[colliders[{i}].motion]", m) for i, m in enumerate(run.collider_motions)]
         bad = nonfinite_inputs(run.rest, motions, scene["frames"], run.sim.params.dt, [run.wind], run.sim.params)
         if bad:
-            raise ValueError(f"{args.scene}: the scene input is not finite: {bad}; the simulation stopped at frame "
-                             f"{err.frame}. This is not a stability problem (more substeps will not help): fix the "
-                             f"input") from None
+            at = f" at frame {err.frame}" if isinstance(err, SimulationDiverged) else ""
+            raise ValueError(f"{args.scene}: the scene input is not finite: {bad}; the simulation stopped{at}. "
+                             f"This is not a stability problem (more substeps will not help): fix the input") from None
         raise
     if not np.isfinite(result["positions"]).all():
         raise ValueError(f"{args.scene}: the simulation produced non-finite positions")

@@ -25,7 +25,10 @@ def nonfinite_inputs(rest, motions: Sequence[tuple], frames: int, dt: float, win
         if m is None:
             continue
         for k in range(frames + 1):
-            p = m(k * dt, dtype=torch.float64)
+            try:
+                p = m(k * dt, dtype=torch.float64)
+            except ValueError as err:  # a Pose refuses NaN/Inf
+                return f"{label}: the pose at t = {k * dt:.4g} s (frame {k}) holds NaN/Inf ({err})"
             if not all(bool(torch.isfinite(t).all()) for t in (p.rotation, p.translation, p.linear_velocity,
                                                               p.angular_velocity)):
                 return f"{label}: the pose at t = {k * dt:.4g} s (frame {k}) holds NaN/Inf"
@@ -45,12 +48,14 @@ def _diverged(err, what: str, bad: Optional[str]):
     """A SimulationDiverged that says where, and says when the input itself was not finite."""
     from ams_torch import SimulationDiverged
 
+    frame = getattr(err, "frame", None)
     if bad:
-        msg = (f"{what}: the scene input is not finite: {bad}; the simulation stopped at frame {err.frame}. "
-               f"This is not a stability problem (more substeps will not help): fix the input")
+        msg = (f"{what}: the scene input is not finite: {bad}; the simulation stopped"
+               f"{'' if frame is None else f' at frame {frame}'}. This is not a stability problem (more substeps "
+               f"will not help): fix the input")
     else:
         msg = f"{what}: {err}"
-    return SimulationDiverged(msg, frame=err.frame, strands=err.strands)
+    return SimulationDiverged(msg, frame=frame, strands=getattr(err, "strands", []))
 
 
 # -- simulation of one batch group ------------------------------------------------------------
@@ -106,10 +111,12 @@ def simulate_group(recipe: Recipe, group: int, device=None, on_frame: Optional[C
             state = sim.step(state, poses_at(t), external_force=force, collider_poses=cposes)
             if on_frame is not None:
                 on_frame(k, state)
-    except SimulationDiverged as err:
+    except (SimulationDiverged, ValueError) as err:  # a NaN input: diverged, or refused by the step
         labelled = [(f"[motion] of sequence {s['index']}", m) for s, m in zip(specs, motions)]
         labelled += [(f"[colliders[{i}].motion]", m) for i, m in enumerate(run.collider_motions)]
         bad = nonfinite_inputs(run.rest, labelled, recipe.frames, dt, winds, sim.params)
+        if isinstance(err, ValueError) and not bad:
+            raise
         raise _diverged(err, f"{recipe.where}: batch group {group} (sequences {[s['index'] for s in specs]})",
                         bad) from None
     ms = 1e3 * (time.perf_counter() - t0) / recipe.frames
