@@ -105,7 +105,7 @@ class Simulator(torch.nn.Module):
                       projection_iterations=tuple(int(c.projection_iterations) for c in cols),
                       follow_head=tuple(bool(c.follow_head) for c in cols), hair_hair=hair_hair,
                       max_relative_speed=float(params.max_relative_speed),
-                      backend="torch" if backend == "auto" else backend)
+                      backend=backend)
 
     # -- properties ------------------------------------------------------------------------
     @property

@@ -117,7 +117,9 @@ class Config:
         follow_head: per collider, whether its pose is relative to the head.
         hair_hair: the hair–hair stage runs. colliders: number of colliders (0: no collision stage).
         max_relative_speed: m/s, the divergence guard's speed limit relative to the head.
-        backend: "torch" or "native" (the fused kernels; see :mod:`ams_torch.sim.native`).
+        backend: "torch" (the differentiable definition), "native" (the fused kernels, see
+            :mod:`ams_torch.sim.native`) or "auto" (native where built; torch when an input
+            requires grad, always).
     """
 
     dt: float

@@ -110,6 +110,24 @@ def _divergence(config: Config, state: State, control: Control, x, v, pose: Pose
     return frame, bad_input
 
 
+def _needs_grad(state: State, coeffs: Coefficients, control: Control, pose: Pose) -> bool:
+    """Whether any input of this frame requires grad (metadata only: no host sync)."""
+    if not torch.is_grad_enabled():
+        return False
+    tensors = [state.x, state.v, state.ghost_rest, state.sag_offset, pose.rotation, pose.translation, *coeffs]
+    if isinstance(control.external_force, torch.Tensor):
+        tensors.append(control.external_force)
+    return any(isinstance(t, torch.Tensor) and t.requires_grad for t in tensors)
+
+
+def stage_backend(config: Config, state: State, coeffs: Coefficients, control: Control, pose: Pose) -> str:
+    """"torch" when the config says so or an input requires grad (gradients stay exact on the torch
+    definition), else the config's "auto" or "native" (SPEC §15)."""
+    if config.backend == "torch" or _needs_grad(state, coeffs, control, pose):
+        return "torch"
+    return config.backend
+
+
 def _label(name: str):
     return record_function(f"ams_torch.{name}")
 
@@ -135,12 +153,13 @@ def step(model: Model, state: State, control: Control, config: Config, timer=Non
     pose1, hermite = resolve_pose(pose0, control.pose, dt)
     coeffs = coefficients(model)
     time = state.time if control.time is None else control.time
+    backend = stage_backend(config, state, coeffs, control, pose1)
     with stage("dynamics"):
         x, v = frame_dynamics(model, coeffs, config, state.x, state.v, state.ghost_rest, state.sag_offset, pose0,
                               pose1, hermite, time, control.external_force)
     if config.hair_hair:
         with stage("hair_hair"):
-            x, v = hair_hair_stage(model.hair_hair, x, v, coeffs.mass, pose1, dt, ~model.pinned[0])
+            x, v = hair_hair_stage(model.hair_hair, x, v, coeffs.mass, pose1, dt, ~model.pinned, backend=backend)
     if config.colliders:
         with stage("collisions"):
             x, v = collisions(model, config, x, v, pose1, control.collider_poses)
