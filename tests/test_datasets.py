@@ -406,6 +406,14 @@ def test_validate_reports_corruption(tmp_path, compression, capsys):
     with h5py.File(path, "r+") as f:  # a sequence gone
         del f["seq_000000"]
     assert any("missing sequence" in p for p in validate_file(path))
+    with h5py.File(path, "r+") as f:  # a version-1 file: refused with what to do
+        f.attrs["format_version"] = 1
+    expected = f"{path}: format_version 1 is not read by this library (it reads version 2); regenerate it with " \
+               f"`ams-torch generate` (its recipe is in the file's 'recipe' attribute)"
+    assert validate_file(path) == [expected]
+    with pytest.raises(DatasetError) as err:
+        HairSequenceDataset(path)
+    assert str(err.value) == expected
 
 
 def test_dataset_verifies_checksums(small, tmp_path):

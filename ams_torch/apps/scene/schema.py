@@ -4,9 +4,21 @@ Validation is table driven: each section is a dict ``key -> (checker, default)``
 takes the value and its key name and returns the normalised value or raises
 :class:`SceneError` (``scene.toml: [groom].strands must be an integer >= 1; got 0``). Checks that
 tie keys together (exactly one groom source, stages that a section needs) run after the table.
-See :mod:`ams_torch.apps.scene` for the format. Normalisations: paths are resolved against the
-scene's folder; ``units`` becomes ``scale`` (m per file unit); a ``transform`` becomes
-``{"rotation": 3x3, "translation": [3] m}``; keyframe ``rotations`` become ``rotvecs``.
+See :mod:`ams_torch.apps.scene` for the format. Keys for imported assets (SPEC §14):
+
+    [head]  mesh = "head.obj" | "body.tfxmesh" (any trimesh format, or TressFX .tfxmesh)
+    [groom] file = "hair.tfx" (a format of ams_torch.grooms.io), bind = true (bind the roots
+            to the head mesh), max_bind_distance = 0.001 (m; needs bind)
+    both:   units = "m" | "cm" | "mm"  or  scale = 0.01 (m per file unit; not both),
+            up_axis = "y" | "z", transform = 4x4 nested list (rows, last row [0, 0, 0, 1]) or
+            { rotation = [[...], [...], [...]], translation = [x, y, z] } (m)
+
+Rotation matrices (any ``transform``, keyframe ``rotations``) must be rotations: orthonormal to
+``ROTATION_TOLERANCE`` (1e-5, max |RᵀR − I|) with det +1; the error names the key.
+Normalisations: paths are resolved against the scene's folder; ``units`` becomes ``scale``
+(m per file unit; ``up_axis`` defaults to "y" for files); a ``transform`` becomes
+``{"rotation": 3x3, "translation": [3] m}`` with the rotation replaced by the nearest exact one;
+keyframe ``rotations`` become ``rotvecs``.
 """
 from __future__ import annotations
 
