@@ -5,6 +5,7 @@ import torch
 
 import ams_torch as at
 from ams_torch.apps.motion import Keyframes, RollerCoaster, make_motion, recorded
+from ams_torch.geometry.pose import axis_angle_to_matrix
 from ams_torch.testing import sphere_groom
 from ams_torch.stages.wind import Wind
 
@@ -84,3 +85,24 @@ def test_hair_moves_downwind():
     windy = _run(Wind(direction=(1.0, 0.0, 0.0), speed=8.0, gust=0.3, turbulence=1.0))
     shift = (windy - still)[:, 2:, :].mean(dim=(0, 1))
     assert shift[0] > 5e-3 and shift[0] > 3 * shift[1:].abs().max()
+
+
+@pytest.mark.parametrize("rotations,match", [
+    (np.zeros((4, 4, 4)), r"rotations must have shape \(4, 3, 3\); got \(4, 4, 4\) \(homogeneous"),
+    (np.tile(3 * np.eye(3), (4, 1, 1)), r"not a rotation at frame \(0,\).*det = 27"),
+    (np.tile(np.array([[1.0, 0.25, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]), (4, 1, 1)), r"not a rotation at frame"),
+])
+def test_recorded_motion_refuses_matrices_that_are_not_rotations(tmp_path, rotations, match):
+    """Before: (F, 4, 4) zeros and 3·I came back as the identity, a shear as a 14° rotation."""
+    path = tmp_path / "bad.npz"
+    np.savez(path, rotations=rotations, translations=np.zeros((4, 3)), dt=0.1)
+    with pytest.raises(ValueError, match=match):
+        recorded(str(path))
+
+
+def test_recorded_float32_rotations_pass_at_their_precision(tmp_path):
+    rv = np.random.default_rng(0).normal(size=(6, 3))
+    rot = axis_angle_to_matrix(torch.as_tensor(rv)).numpy().astype(np.float32)
+    np.savez(tmp_path / "ok.npz", rotations=rot, translations=np.zeros((6, 3)), dt=0.1)
+    m = recorded(str(tmp_path / "ok.npz"))
+    assert torch.allclose(m(0.2, dtype=torch.float64).rotation, torch.as_tensor(rot[2], dtype=torch.float64), atol=1e-6)

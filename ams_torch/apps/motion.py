@@ -183,10 +183,13 @@ class Keyframes(Motion):
 
 def recorded(path: str) -> Keyframes:
     """A recorded pose sequence from an ``.npz`` with ``translations`` (F, 3) m and either
-    ``rotations`` (F, 3, 3) or ``rotvecs`` (F, 3) rad, and either ``times`` (F,) s or a scalar
-    ``dt`` s (sample k at k·dt). Velocities are the exact derivatives of the interpolation
-    (:class:`Keyframes`)."""
+    ``rotations`` (F, 3, 3) (proper rotations: orthonormal, det +1) or ``rotvecs`` (F, 3) rad,
+    and either ``times`` (F,) s or a scalar ``dt`` s (sample k at k·dt). Velocities are the exact
+    derivatives of the interpolation (:class:`Keyframes`). Raises ``ValueError`` naming the file,
+    the array and the first bad frame (a matrix that is not a rotation is never replaced)."""
     import os
+
+    from ams_torch.geometry.pose import check_rotation
 
     if not os.path.isfile(path):
         raise FileNotFoundError(f"recorded motion: no such file {path!r}")
@@ -196,10 +199,28 @@ def recorded(path: str) -> Keyframes:
             raise ValueError(f"recorded motion {path!r} needs 'translations', 'rotations' or 'rotvecs', "
                              f"and 'times' or 'dt'; it has {sorted(keys)}")
         tr = np.asarray(data["translations"], dtype=np.float64)
+        if tr.ndim != 2 or tr.shape[1] != 3 or not np.isfinite(tr).all():
+            raise ValueError(f"recorded motion {path!r}: translations must be finite with shape (F, 3); got "
+                             f"{tr.shape}")
         if "rotvecs" in keys:
             rv = np.asarray(data["rotvecs"], dtype=np.float64)
+            if rv.shape != tr.shape or not np.isfinite(rv).all():
+                raise ValueError(f"recorded motion {path!r}: rotvecs must be finite with shape {tr.shape}; got "
+                                 f"{rv.shape}")
         else:
-            rv = matrix_to_axis_angle(torch.as_tensor(np.asarray(data["rotations"], dtype=np.float64))).numpy()
+            stored = np.asarray(data["rotations"])
+            rot = stored.astype(np.float64)
+            if rot.shape != (len(tr), 3, 3):
+                hint = (" (homogeneous 4×4 matrices: store their upper-left 3×3 as rotations and their last "
+                        "column as translations)" if rot.shape[1:] == (4, 4) else "")
+                raise ValueError(f"recorded motion {path!r}: rotations must have shape ({len(tr)}, 3, 3); got "
+                                 f"{rot.shape}{hint}")
+            try:
+                # the tolerance of the stored precision (a float32 recording is orthonormal to ~1e-7)
+                check_rotation(torch.as_tensor(stored if stored.dtype == np.float32 else rot), "rotations")
+            except ValueError as err:
+                raise ValueError(f"recorded motion {path!r}: {str(err).replace('at index (', 'at frame (')}") from None
+            rv = matrix_to_axis_angle(torch.as_tensor(rot)).numpy()
         times = np.asarray(data["times"], dtype=np.float64) if "times" in keys else \
             float(data["dt"]) * np.arange(len(tr))
     return Keyframes(times, rv, tr)
