@@ -78,6 +78,22 @@ _BACKENDS = {
         "ams_torch_grid_cuda",
         "cuda",
     ),
+    "frame_cpu": (
+        "ams_torch_frame_cpu",
+        ("frame/frame_cpu.cpp",),
+        ("banded/banded_cholesky.h", "banded/banded_simd.h", "frame/lanes.h", "frame/ftl.h", "frame/frame.h",
+         "frame/frame_binding.h"),
+        "ams_torch_frame_cpu",
+        "cpu",
+    ),
+    "frame_cuda": (
+        "ams_torch_frame_cuda",
+        ("frame/frame_cuda_binding.cpp", "frame/frame_cuda.cu"),
+        ("banded/banded_cholesky.h", "frame/lanes.h", "frame/ftl.h", "frame/frame.h", "frame/frame_binding.h",
+         "frame/frame_cuda.h"),
+        "ams_torch_frame_cuda",
+        "cuda",
+    ),
 }
 
 

@@ -1,0 +1,293 @@
+"""The fused native frame of strand dynamics (SPEC §15): one registered op, CPU and CUDA kernels.
+
+``native_frame_dynamics`` has the signature of :func:`ams_torch.sim.dynamics.frame_dynamics` and
+returns the same ``(x, v)``: M substeps (substep head poses, ghosts and pin targets, assembly of
+every term, banded Cholesky solve, position update) and follow-the-leader, for every strand of
+every scene, in one call of the registered op ``torch.ops.ams_torch.frame_dynamics``:
+
+* default implementation (any device): the torch definition, ``frame_dynamics`` itself, called
+  through a light adapter that rebuilds the model, coefficients, config and poses from the op's
+  tensors and numbers;
+* CPU and CUDA: the native kernels of ``ams_torch/solver/csrc/frame`` (backends ``frame_cpu`` and
+  ``frame_cuda`` of :mod:`ams_torch.solver.build`), built lazily on first use, float32 and
+  float64; otherwise (not built, ``AMS_TORCH_NATIVE=0``, another dtype, an input requiring grad)
+  the torch definition, with one :class:`~ams_torch.solver.build.NativeBuildWarning` per process
+  when a build fails;
+* ``register_fake``: shapes for ``torch.compile`` and meta tensors. No autograd formula: the
+  entry point sends anything that needs a gradient to the torch definition.
+
+The kernels run the torch definition's arithmetic per strand (``frame.h``, one source for host and
+device): the same formulas, branches (``torch.where``) and safe-normalisation thresholds, in the
+same operation order wherever practical, so float64 frames agree to about 1e-15 relative (the
+differences are the order of a few sums inside torch's matmul and einsum kernels, fused
+multiply-adds, and atan2/sin/cos to within an ulp). A callable external force ``f(x, v, t)`` is
+not supported natively (the caller keeps the torch path for it: :func:`native_frame_supported`).
+
+``torch.ops.ams_torch.frame_assembly`` (and :func:`native_frame_assembly`) returns one substep's
+assembled system instead, ``blocks`` (..., S, N, 4, 3, 3) and ``rhs`` (..., S, N, 3) as
+:func:`ams_torch.sim.assembly.assemble_system` gives them, for term-by-term parity tests.
+"""
+from __future__ import annotations
+
+from types import SimpleNamespace
+from typing import List, Optional, Tuple
+
+import torch
+
+from ams_torch.geometry.pose import Pose
+from ams_torch.sim.assembly import assemble_system
+from ams_torch.sim.dynamics import frame_dynamics, substep_poses
+from ams_torch.sim.model import Coefficients, Model
+from ams_torch.sim.state import Config, ExternalForce
+from ams_torch.solver import build as _native
+
+__all__ = ["NATIVE_DTYPES", "native_frame_available", "native_frame_supported", "native_frame_dynamics",
+           "native_frame_assembly", "frame_dynamics_op", "frame_assembly_op"]
+
+NATIVE_DTYPES = (torch.float32, torch.float64)
+_KINDS = {"cpu": "frame_cpu", "cuda": "frame_cuda"}
+_INTEGRITY = {"none": 0, "hookean": 1, "nonhookean": 2}
+_INTEGRITY_NAMES = {v: k for k, v in _INTEGRITY.items()}
+
+#: Order of the op's tensor lists (shapes: ``frame_binding.h``).
+STATE_FIELDS = ("x", "v", "ghost_rest", "sag_offset")
+MODEL_FIELDS = ("rest_positions", "mass", "drag", "edge", "bend", "torsion", "integrity", "angular", "transition",
+                "breaking", "soft_ratio", "edge_rest_length", "bend_rest_length", "torsion_rest_length",
+                "segment_length", "num_pinned", "gravity")
+POSE_FIELDS = ("rotation0", "translation0", "linear_velocity0", "rotation1", "translation1", "linear_velocity1")
+
+
+# -- availability ---------------------------------------------------------------------------
+def native_frame_available(device, dtype) -> bool:
+    """Whether the native frame kernel runs for tensors of ``device`` and ``dtype`` (builds it on
+    first call; False when it cannot be built, when ``AMS_TORCH_NATIVE=0``, or for dtypes other
+    than float32/float64). Not traceable: decide it when the simulator is built."""
+    kind = _KINDS.get(torch.device(device).type)
+    return kind is not None and dtype in NATIVE_DTYPES and _native.native_ops(kind) is not None
+
+
+def _tensors_of(coeffs: Coefficients, x, v, ghost_rest, sag_offset, pose0: Pose, pose1: Pose, external_force):
+    out = [x, v, ghost_rest, sag_offset, *coeffs]
+    for p in (pose0, pose1):
+        out += [t for t in (p.rotation, p.translation, p.linear_velocity, p.angular_velocity) if t is not None]
+    if isinstance(external_force, torch.Tensor):
+        out.append(external_force)
+    return out
+
+
+def native_frame_supported(model: Model, coeffs: Coefficients, x: torch.Tensor, v: torch.Tensor,
+                           ghost_rest: torch.Tensor, sag_offset: torch.Tensor, pose0: Pose, pose1: Pose,
+                           external_force: ExternalForce = None) -> bool:
+    """Whether :func:`native_frame_dynamics` can use the native op for these inputs (traceable:
+    Python checks of types, dtypes, devices and ``requires_grad`` only, no build, no host sync).
+
+    False for a callable external force, a dtype other than float32/float64, a device other than
+    CPU/CUDA, or when grad mode is on and any input (state, coefficient, pose, external force)
+    requires grad: gradients come from the torch definition.
+    """
+    if external_force is not None and not isinstance(external_force, torch.Tensor):
+        return False
+    if x.dtype not in NATIVE_DTYPES or x.device.type not in _KINDS or model.rest_positions.dtype != x.dtype:
+        return False
+    if torch.is_grad_enabled():
+        tensors = _tensors_of(coeffs, x, v, ghost_rest, sag_offset, pose0, pose1, external_force)
+        if any(t.requires_grad for t in tensors):
+            return False
+    return True
+
+
+# -- the torch definition behind the op -------------------------------------------------------
+def _rebuild(state, external_force, model, poses, dt, substeps, ftl_damping, integrity_model, angular,
+             angular_reaction, implicit_angular, geometric_stiffness, inextensibility, hermite):
+    """Model-, coefficient-, config- and pose-like objects for the torch definition, from the op's
+    arguments (no host sync)."""
+    (rest, mass, drag, edge, bend, torsion, integrity, angular_k, transition, breaking, soft_ratio, l1, l2, l3,
+     segment, num_pinned, gravity) = model
+    n = rest.shape[-2]
+    pinned = torch.arange(n, device=rest.device)[None, :] < num_pinned[:, None]
+    # has_pinned=True is exact for a model without pinned particles too (A·0 and blocks·1 change nothing)
+    mview = SimpleNamespace(rest_positions=rest, edge_rest_length=l1, bend_rest_length=l2, torsion_rest_length=l3,
+                            rest_lengths=(l1, l2, l3), segment_length=segment, pinned=pinned,
+                            num_pinned=num_pinned, has_pinned=True, gravity=gravity)
+    coeffs = Coefficients(mass=mass, drag=drag, edge=edge, bend=bend, torsion=torsion, integrity=integrity,
+                          angular=angular_k, transition=transition.reshape(()), breaking=breaking.reshape(()),
+                          soft_ratio=soft_ratio.reshape(()))
+    config = Config(dt=dt, substeps=substeps, integrity_model=_INTEGRITY_NAMES[integrity_model], angular=angular,
+                    angular_reaction=angular_reaction, implicit_angular=implicit_angular,
+                    geometric_stiffness=geometric_stiffness, inextensibility=inextensibility,
+                    ftl_damping=ftl_damping)
+    batch = state[0].shape[:-3]
+    pose_list = []
+    for r, t, u in (poses[:3], poses[3:]):
+        shape = () if r.numel() == 9 else batch
+        r, t, u = r.reshape(shape + (3, 3)), t.reshape(shape + (3,)), u.reshape(shape + (3,))
+        pose_list.append(Pose(r, t, u, u, check=False) if hermite else Pose(r, t, check=False))
+    return mview, coeffs, config, pose_list[0], pose_list[1]
+
+
+def _frame_torch(state, external_force, model, poses, *settings):
+    mview, coeffs, config, pose0, pose1 = _rebuild(state, external_force, model, poses, *settings)
+    x, v, ghost_rest, sag_offset = state
+    return frame_dynamics(mview, coeffs, config, x, v, ghost_rest, sag_offset, pose0, pose1, settings[-1], 0.0,
+                          external_force)
+
+
+def _assembly_torch(state, external_force, model, poses, *settings_and_substep):
+    """Substep k's system exactly as ``frame_dynamics`` assembles it, from the state (x, v) given."""
+    *settings, k = settings_and_substep
+    mview, coeffs, config, pose0, pose1 = _rebuild(state, external_force, model, poses, *settings)
+    x, v, ghost_rest, sag_offset = state
+    h = config.dt / config.substeps
+    poses_k = substep_poses(pose0, pose1, settings[-1], config.substeps, config.dt)
+    pa, pb = poses_k[k], poses_k[k + 1]
+    y_a = pa.to_world(ghost_rest)
+    w = (pb.to_world(ghost_rest) - y_a) / h
+    target = pb.to_world(mview.rest_positions.expand(x.shape))
+    pin_v = torch.where(mview.pinned[..., None], (target - x) / h, torch.zeros_like(x))
+    offset = pa.rotate(sag_offset) if config.nonhookean else None
+    return assemble_system(mview, coeffs, config, x, v, y_a, w, pin_v, h, external_force, offset)
+
+
+def _namespace(x: torch.Tensor, tensors) -> Optional[object]:
+    """The native namespace for x's device, or None (torch definition)."""
+    if x.dtype not in NATIVE_DTYPES or any(t.requires_grad for t in tensors):
+        return None
+    return _native.native_ops(_KINDS[x.device.type])
+
+
+def _all_tensors(state, external_force, model, poses):
+    return list(state) + list(model) + list(poses) + ([] if external_force is None else [external_force])
+
+
+# -- the registered ops --------------------------------------------------------------------------
+@torch.library.custom_op("ams_torch::frame_dynamics", mutates_args=())
+def frame_dynamics_op(state: List[torch.Tensor], external_force: Optional[torch.Tensor], model: List[torch.Tensor],
+                      poses: List[torch.Tensor], dt: float, substeps: int, ftl_damping: float, integrity_model: int,
+                      angular: bool, angular_reaction: bool, implicit_angular: bool, geometric_stiffness: bool,
+                      inextensibility: bool, hermite: bool) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Registered op ``ams_torch::frame_dynamics``; default (any device): the torch definition.
+
+    state: [x, v, ghost_rest, sag_offset], each (..., S, N, 3) m, m/s, m (head frame), m (head
+    frame); external_force: (..., S, N, 3) N or None; model: the tensors of ``MODEL_FIELDS``
+    (``frame_binding.h`` has their shapes: per-term coefficients (S, N−k), rest data, num_pinned
+    (S,) int64, gravity (3,) m/s²); poses: [R0 (P0, 3, 3), t0 (P0, 3) m, u0 (P0, 3) m/s, R1, t1,
+    u1] with P_j = 1 or the number of scenes (u read only with ``hermite``); dt s, substeps M,
+    ftl_damping, integrity_model 0 none / 1 Hookean / 2 non-Hookean, and the Config flags.
+    Returns new contiguous (x, v), each (..., S, N, 3).
+    """
+    return _frame_torch(state, external_force, model, poses, dt, substeps, ftl_damping, integrity_model, angular,
+                        angular_reaction, implicit_angular, geometric_stiffness, inextensibility, hermite)
+
+
+def _frame_kernel(state, external_force, model, poses, *settings):
+    ns = _namespace(state[0], _all_tensors(state, external_force, model, poses))
+    if ns is None:
+        return _frame_torch(state, external_force, model, poses, *settings)
+    return tuple(ns.frame(state, external_force, model, poses, *settings, -1))
+
+
+frame_dynamics_op.register_kernel("cpu")(_frame_kernel)
+frame_dynamics_op.register_kernel("cuda")(_frame_kernel)
+
+
+@frame_dynamics_op.register_fake
+def _frame_fake(state, external_force, model, poses, *settings):
+    x = state[0]
+    return torch.empty_like(x, memory_format=torch.contiguous_format), \
+        torch.empty_like(x, memory_format=torch.contiguous_format)
+
+
+@torch.library.custom_op("ams_torch::frame_assembly", mutates_args=())
+def frame_assembly_op(state: List[torch.Tensor], external_force: Optional[torch.Tensor], model: List[torch.Tensor],
+                      poses: List[torch.Tensor], dt: float, substeps: int, ftl_damping: float, integrity_model: int,
+                      angular: bool, angular_reaction: bool, implicit_angular: bool, geometric_stiffness: bool,
+                      inextensibility: bool, hermite: bool, substep: int) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Registered op ``ams_torch::frame_assembly`` (debug, parity tests): the system of substep
+    ``substep`` ∈ [0, M) assembled at the given (x, v) as the frame would assemble it there.
+    Arguments as :func:`frame_dynamics_op`. Returns blocks (..., S, N, 4, 3, 3) kg (lower band,
+    ``blocks[..., i, k] = A[i, i−k]``, full diagonal blocks) and rhs (..., S, N, 3) kg·m/s.
+    """
+    return _assembly_torch(state, external_force, model, poses, dt, substeps, ftl_damping, integrity_model,
+                           angular, angular_reaction, implicit_angular, geometric_stiffness, inextensibility, hermite,
+                           substep)
+
+
+def _assembly_kernel(state, external_force, model, poses, *settings_and_substep):
+    ns = _namespace(state[0], _all_tensors(state, external_force, model, poses))
+    if ns is None:
+        return _assembly_torch(state, external_force, model, poses, *settings_and_substep)
+    return tuple(ns.frame(state, external_force, model, poses, *settings_and_substep))
+
+
+frame_assembly_op.register_kernel("cpu")(_assembly_kernel)
+frame_assembly_op.register_kernel("cuda")(_assembly_kernel)
+
+
+@frame_assembly_op.register_fake
+def _assembly_fake(state, external_force, model, poses, *settings_and_substep):
+    x = state[0]
+    return x.new_empty(x.shape[:-1] + (4, 3, 3)), torch.empty_like(x, memory_format=torch.contiguous_format)
+
+
+# -- entry points ------------------------------------------------------------------------------
+def op_arguments(model: Model, coeffs: Coefficients, config: Config, x: torch.Tensor, v: torch.Tensor,
+                 ghost_rest: torch.Tensor, sag_offset: torch.Tensor, pose0: Pose, pose1: Pose, hermite: bool,
+                 external_force: Optional[torch.Tensor] = None) -> tuple:
+    """The op's arguments ``(state, external_force, model, poses, *settings)`` for these inputs.
+    No torch op runs unless a pose or the external force must be broadcast, or a coefficient
+    expanded to its term's shape."""
+    batch = x.shape[:-3]
+    s, n = x.shape[-3], x.shape[-2]
+    hermite = bool(hermite and pose0.has_velocity and pose1.has_velocity)
+    poses = []
+    for p in (pose0, pose1):
+        r, t = p.rotation, p.translation
+        u = p.linear_velocity if hermite else t
+        if tuple(r.shape[:-2]) not in ((), tuple(batch)):
+            r, t, u = (a.expand(batch + a.shape[-k:]).contiguous() for a, k in ((r, 2), (t, 1), (u, 1)))
+        poses += [a if a.dtype == x.dtype else a.to(x.dtype) for a in (r, t, u)]
+    if external_force is not None:
+        if external_force.dtype != x.dtype or external_force.device != x.device:
+            external_force = external_force.to(device=x.device, dtype=x.dtype)
+        if external_force.shape != x.shape:
+            external_force = external_force.expand(x.shape).contiguous()
+    shapes = {"mass": (s, n), "drag": (s, n), "edge": (s, n - 1), "bend": (s, n - 2), "torsion": (s, n - 3),
+              "integrity": (s, n), "angular": (s, n - 1)}
+    terms = [c if tuple(c.shape) == shapes[name] else c.expand(shapes[name])
+             for name, c in ((f, getattr(coeffs, f)) for f in shapes)]
+    model_list = [model.rest_positions, *terms, coeffs.transition, coeffs.breaking, coeffs.soft_ratio,
+                  *model.rest_lengths, model.segment_length, model.num_pinned, model.gravity]
+    settings = (float(config.dt), int(config.substeps), float(config.ftl_damping), _INTEGRITY[config.integrity_model],
+                bool(config.angular), bool(config.angular_reaction), bool(config.implicit_angular),
+                bool(config.geometric_stiffness), bool(config.inextensibility), hermite)
+    return ([x, v, ghost_rest, sag_offset], external_force, model_list, poses) + settings
+
+
+def native_frame_dynamics(model: Model, coeffs: Coefficients, config: Config, x: torch.Tensor, v: torch.Tensor,
+                          ghost_rest: torch.Tensor, sag_offset: torch.Tensor, pose0: Pose, pose1: Pose, hermite: bool,
+                          time: torch.Tensor, external_force: ExternalForce = None) -> tuple:
+    """One frame of strand dynamics by the fused native kernel; same arguments and result as
+    :func:`ams_torch.sim.dynamics.frame_dynamics` (x, v, ghost_rest, sag_offset: (..., S, N, 3) m,
+    m/s, m, m; poses with velocities; time () s, unused natively; external_force (..., S, N, 3) N,
+    or broadcastable to it). Returns (x, v), each (..., S, N, 3).
+
+    Inputs that :func:`native_frame_supported` rejects (a callable external force, a gradient to
+    keep, another dtype or device) go to ``frame_dynamics`` itself. One registered op per frame:
+    traceable by ``torch.compile(fullgraph=True)``, no host synchronisation.
+    """
+    if not native_frame_supported(model, coeffs, x, v, ghost_rest, sag_offset, pose0, pose1, external_force):
+        return frame_dynamics(model, coeffs, config, x, v, ghost_rest, sag_offset, pose0, pose1, hermite, time,
+                              external_force)
+    args = op_arguments(model, coeffs, config, x, v, ghost_rest, sag_offset, pose0, pose1, hermite, external_force)
+    return frame_dynamics_op(*args)
+
+
+def native_frame_assembly(model: Model, coeffs: Coefficients, config: Config, x: torch.Tensor, v: torch.Tensor,
+                          ghost_rest: torch.Tensor, sag_offset: torch.Tensor, pose0: Pose, pose1: Pose, hermite: bool,
+                          substep: int, external_force: Optional[torch.Tensor] = None) -> tuple:
+    """The system of substep ``substep`` (0 ≤ k < M) of a frame from pose0 to pose1, assembled at
+    (x, v) by the registered op (native kernel when available). Arguments as
+    :func:`native_frame_dynamics`. Returns blocks (..., S, N, 4, 3, 3) kg and rhs (..., S, N, 3)
+    kg·m/s, the layout of :func:`ams_torch.sim.assembly.assemble_system`."""
+    args = op_arguments(model, coeffs, config, x, v, ghost_rest, sag_offset, pose0, pose1, hermite, external_force)
+    return frame_assembly_op(*args, int(substep))

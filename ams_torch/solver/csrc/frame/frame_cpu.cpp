@@ -1,0 +1,234 @@
+// CPU kernel of the fused frame of strand dynamics: op `ams_torch_frame_cpu::frame` (schema and
+// shapes in frame_binding.h; arithmetic in frame.h, shared with CUDA).
+//
+// Work is split into tasks of (scene, group of W strands), W the SIMD width of banded_simd.h
+// (8 float / 4 double strands with 32-byte vectors), run by at::parallel_for. A task copies its
+// W strands' inputs into a per-thread scratch buffer in a strand-interleaved layout (value e of
+// lane l at e·W + l), runs the whole frame there (M substeps of assembly + banded solve +
+// position update, then follow-the-leader) on W-lane vectors, and copies x and v out: one
+// group's matrix rows, right-hand sides and positions (about 77 N W values: 79 KB at N = 32)
+// stay in L1/L2 for the whole frame. The scratch is allocated once per thread and reused across
+// calls; nothing is allocated per strand. The last group of a scene is padded with copies of a
+// real strand. The M + 1 substep head poses of every scene are computed once per call.
+#include <ATen/Dispatch.h>
+#include <ATen/Parallel.h>
+#include <ATen/core/Tensor.h>
+#include <torch/library.h>
+
+#include <algorithm>
+#include <cstdint>
+#include <cstdlib>
+#include <tuple>
+#include <vector>
+
+#include "banded_simd.h"
+#include "frame.h"
+#include "frame_binding.h"
+
+namespace ams_torch {
+namespace frame {
+namespace {
+
+constexpr const char* kOp = "ams_torch_frame_cpu::frame";
+
+// Per-thread scratch, 64-byte aligned, grown on demand and reused across calls.
+void* thread_scratch(size_t bytes) {
+  struct Buffer {
+    void* ptr = nullptr;
+    size_t size = 0;
+    ~Buffer() { std::free(ptr); }
+  };
+  thread_local Buffer buf;
+  if (buf.size < bytes) {
+    std::free(buf.ptr);
+    buf.ptr = nullptr;
+    buf.size = 0;
+    const size_t rounded = (bytes + 63) / 64 * 64;
+    buf.ptr = std::aligned_alloc(64, rounded);
+    TORCH_CHECK(buf.ptr != nullptr, "ams_torch: out of memory for frame scratch (", rounded, " bytes)");
+    buf.size = rounded;
+  }
+  return buf.ptr;
+}
+
+// Offsets (in values per lane) of the arrays of one strand in the scratch.
+struct Layout {
+  int64_t rest, mass, drag, stiffness[3], rest_length[3], integrity, angular, segment, pinned;
+  int64_t x, v, ghost_rest, sag_offset, ext, a, b, force, ghost, ghost_velocity, total;
+  explicit Layout(int64_t n) {
+    int64_t o = 0;
+    auto take = [&o](int64_t count) {
+      const int64_t at = o;
+      o += count;
+      return at;
+    };
+    rest = take(3 * n);
+    mass = take(n);
+    drag = take(n);
+    for (int k = 0; k < 3; ++k) stiffness[k] = take(n - 1 - k);
+    for (int k = 0; k < 3; ++k) rest_length[k] = take(n - 1 - k);
+    integrity = take(n);
+    angular = take(n - 1);
+    segment = take(n);
+    pinned = take(1);
+    x = take(3 * n);
+    v = take(3 * n);
+    ghost_rest = take(3 * n);
+    sag_offset = take(3 * n);
+    ext = take(3 * n);
+    a = take(banded::kRowElems * n);
+    b = take(3 * n);
+    force = take(3 * n);
+    ghost = take(3 * n);
+    ghost_velocity = take(3 * n);
+    total = o;
+  }
+};
+
+// dst[e W + l] = src[l][e]: W sequential read streams, one contiguous write stream.
+template <class T, int64_t W>
+void interleave(T* dst, const T* const* src, int64_t count) {
+  for (int64_t e = 0; e < count; ++e)
+    for (int64_t l = 0; l < W; ++l) dst[e * W + l] = src[l][e];
+}
+
+template <class T, int64_t W>
+void deinterleave(T* const* dst, const T* src, int64_t count, int64_t lanes) {
+  for (int64_t l = 0; l < lanes; ++l)
+    for (int64_t e = 0; e < count; ++e) dst[l][e] = src[e * W + l];
+}
+
+template <class T>
+void run_frame(const FrameArgs<T>& args, const FrameSettings& cfg, int64_t assemble_substep, T* out0, T* out1) {
+  using V = typename banded::LaneVec<T>::type;
+  constexpr int64_t W = int64_t(sizeof(V) / sizeof(T));
+  const int64_t B = args.scenes, S = args.strands, N = args.particles, M = cfg.substeps;
+  // the substep poses of every scene (pose k: the head at the end of substep k − 1)
+  std::vector<T> poses(size_t(B * (M + 1) * kPoseElems));
+  for (int64_t b = 0; b < B; ++b)
+    for (int64_t k = 0; k <= M; ++k)
+      substep_pose(args, b, int(k), int(M), cfg.hermite, cfg.dt, poses.data() + (b * (M + 1) + k) * kPoseElems);
+  const Material<T> mat{{args.gravity[0], args.gravity[1], args.gravity[2]}, *args.transition, *args.breaking,
+                        *args.soft_ratio};
+  const Layout lay(N);
+  const int64_t groups = (S + W - 1) / W;
+  const bool nonhookean = cfg.integrity == kIntegrityNonHookean;
+  const bool has_ext = args.external_force != nullptr;
+
+  at::parallel_for(0, B * groups, 1, [&](int64_t t_begin, int64_t t_end) {
+    T* sc = static_cast<T*>(thread_scratch(size_t(lay.total * W) * sizeof(T)));
+    auto view = [&](int64_t offset) { return Lanes<V, T>{sc + offset * W, W}; };
+    Strand<V, T> st;
+    st.n = N;
+    st.rest = view(lay.rest);
+    st.mass = view(lay.mass);
+    st.drag = view(lay.drag);
+    for (int k = 0; k < 3; ++k) {
+      st.stiffness[k] = view(lay.stiffness[k]);
+      st.rest_length[k] = view(lay.rest_length[k]);
+    }
+    st.integrity = view(lay.integrity);
+    st.angular = view(lay.angular);
+    st.segment = view(lay.segment);
+    st.x = view(lay.x);
+    st.v = view(lay.v);
+    st.ghost_rest = view(lay.ghost_rest);
+    st.sag_offset = view(lay.sag_offset);
+    st.ext = view(lay.ext);
+    st.has_ext = has_ext;
+    st.a = view(lay.a);
+    st.b = view(lay.b);
+    st.force = view(lay.force);
+    st.ghost = view(lay.ghost);
+    st.ghost_velocity = view(lay.ghost_velocity);
+
+    for (int64_t task = t_begin; task < t_end; ++task) {
+      const int64_t b = task / groups, s0 = (task % groups) * W;
+      const int64_t lanes = std::min<int64_t>(W, S - s0);
+      int64_t strand[W];
+      for (int64_t l = 0; l < W; ++l) strand[l] = std::min(s0 + l, S - 1); // pad with a real strand
+      const T* src[W];
+      auto gather_model = [&](const T* base, int64_t per_strand, int64_t offset) {
+        for (int64_t l = 0; l < W; ++l) src[l] = base + strand[l] * per_strand;
+        interleave<T, W>(sc + offset * W, src, per_strand);
+      };
+      auto gather_scene = [&](const T* base, int64_t offset) {
+        for (int64_t l = 0; l < W; ++l) src[l] = base + (b * S + strand[l]) * 3 * N;
+        interleave<T, W>(sc + offset * W, src, 3 * N);
+      };
+      gather_model(args.rest_positions, 3 * N, lay.rest);
+      gather_model(args.mass, N, lay.mass);
+      gather_model(args.drag, N, lay.drag);
+      for (int k = 0; k < 3; ++k) {
+        gather_model(args.stiffness[k], N - 1 - k, lay.stiffness[k]);
+        gather_model(args.rest_length[k], N - 1 - k, lay.rest_length[k]);
+      }
+      if (cfg.integrity != kIntegrityNone) gather_model(args.integrity, N, lay.integrity);
+      if (cfg.angular) gather_model(args.angular, N - 1, lay.angular);
+      if (nonhookean) gather_model(args.segment_length, N, lay.segment);
+      gather_scene(args.x, lay.x);
+      gather_scene(args.v, lay.v);
+      gather_scene(args.ghost_rest, lay.ghost_rest);
+      if (nonhookean) gather_scene(args.sag_offset, lay.sag_offset);
+      if (has_ext) gather_scene(args.external_force, lay.ext);
+      T* pinned = sc + lay.pinned * W;
+      int64_t pinned_max = 0;
+      for (int64_t l = 0; l < W; ++l) {
+        const int64_t p = std::min<int64_t>(std::max<int64_t>(args.num_pinned[strand[l]], 0), N);
+        pinned[l] = T(p);
+        pinned_max = std::max(pinned_max, p);
+      }
+      st.pinned = *reinterpret_cast<const V*>(pinned);
+      st.pinned_max = int(pinned_max);
+      const T* scene_poses = poses.data() + b * (M + 1) * kPoseElems;
+      T* dst[W];
+      if (assemble_substep >= 0) {
+        const T* pa = scene_poses + assemble_substep * kPoseElems;
+        assemble(st, mat, cfg, pa, pa + kPoseElems);
+        mirror_blocks(st.a, N);
+        for (int64_t l = 0; l < lanes; ++l) dst[l] = out0 + (b * S + s0 + l) * banded::kRowElems * N;
+        deinterleave<T, W>(dst, sc + lay.a * W, banded::kRowElems * N, lanes);
+        for (int64_t l = 0; l < lanes; ++l) dst[l] = out1 + (b * S + s0 + l) * 3 * N;
+        deinterleave<T, W>(dst, sc + lay.b * W, 3 * N, lanes);
+      } else {
+        strand_frame(st, mat, cfg, scene_poses);
+        for (int64_t l = 0; l < lanes; ++l) dst[l] = out0 + (b * S + s0 + l) * 3 * N;
+        deinterleave<T, W>(dst, sc + lay.x * W, 3 * N, lanes);
+        for (int64_t l = 0; l < lanes; ++l) dst[l] = out1 + (b * S + s0 + l) * 3 * N;
+        deinterleave<T, W>(dst, sc + lay.v * W, 3 * N, lanes);
+      }
+    }
+  });
+}
+
+std::tuple<at::Tensor, at::Tensor> frame_cpu(at::TensorList state, const std::optional<at::Tensor>& ext,
+                                             at::TensorList model, at::TensorList poses, double dt, int64_t substeps,
+                                             double ftl_damping, int64_t integrity_model, bool angular,
+                                             bool angular_reaction, bool implicit_angular, bool geometric_stiffness,
+                                             bool inextensibility, bool hermite, int64_t assemble_substep) {
+  const FrameInputs in = check_frame_inputs(kOp, state, ext, model, poses, dt, substeps, ftl_damping, integrity_model,
+                                            angular, angular_reaction, implicit_angular, geometric_stiffness,
+                                            inextensibility, hermite, assemble_substep);
+  TORCH_CHECK(in.state[kX].device().is_cpu(), kOp, ": CPU tensors expected");
+  auto out = frame_outputs(in);
+  if (in.scenes == 0 || in.strands == 0) return out;
+  AT_DISPATCH_FLOATING_TYPES(in.state[kX].scalar_type(), kOp, [&] {
+    run_frame<scalar_t>(frame_args<scalar_t>(in), in.settings, in.assemble_substep,
+                        std::get<0>(out).mutable_data_ptr<scalar_t>(), std::get<1>(out).mutable_data_ptr<scalar_t>());
+  });
+  return out;
+}
+
+} // namespace
+} // namespace frame
+} // namespace ams_torch
+
+TORCH_LIBRARY(ams_torch_frame_cpu, m) {
+  m.def("frame(Tensor[] state, Tensor? external_force, Tensor[] model, Tensor[] poses, float dt, int substeps, "
+        "float ftl_damping, int integrity_model, bool angular, bool angular_reaction, bool implicit_angular, "
+        "bool geometric_stiffness, bool inextensibility, bool hermite, int assemble_substep) -> (Tensor, Tensor)");
+}
+
+TORCH_LIBRARY_IMPL(ams_torch_frame_cpu, CPU, m) {
+  m.impl("frame", &ams_torch::frame::frame_cpu);
+}
