@@ -22,6 +22,8 @@ def test_scene_dir_has_the_paper_scenes():
 
 @pytest.mark.parametrize("path", SCENES, ids=lambda p: os.path.basename(p))
 def test_every_scene_runs_a_few_frames(path):
+    if "shared/assets" in Path(path).read_text() and not (Path(__file__).resolve().parents[2] / "shared" / "assets").is_dir():
+        pytest.skip("the scene reads real assets from ../shared/assets, which is not here")
     scene = load_scene(path, {"frames": 3})
     strands = scene["groom"].get("strands", 1000)
     scene["scale"] = min(1.0, 12.0 / strands)

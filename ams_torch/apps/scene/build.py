@@ -16,6 +16,11 @@ from ams_torch.stages.wind import Wind
 __all__ = ["BuiltScene", "build", "trim_strands"]
 
 
+def _import_args(section: dict) -> dict:
+    """The import keys of a [head]/[groom] section (units normalised to ``scale`` by the schema)."""
+    return {k: section[k] for k in ("scale", "up_axis", "transform") if k in section}
+
+
 def _head_mesh(head: dict):
     if head["mesh"] == "default":
         from ams_torch.grooms.head import default_head
@@ -25,7 +30,7 @@ def _head_mesh(head: dict):
         return None
     from ams_torch.geometry.mesh import load_mesh
 
-    return load_mesh(head["mesh"])
+    return load_mesh(head["mesh"], **_import_args(head))
 
 
 def _make_groom(scene: dict, mesh) -> tuple:
@@ -44,7 +49,10 @@ def _make_groom(scene: dict, mesh) -> tuple:
     if "file" in g:
         from ams_torch.grooms.io import read_groom
 
-        groom = read_groom(g["file"], resample=particles or 32)
+        groom = read_groom(g["file"], resample=particles or 32, **_import_args(g))
+        if g.get("bind"):  # roots to their nearest triangles of the head mesh (SPEC §14)
+            groom = groom.bind_to(mesh, **({"max_distance": g["max_bind_distance"]} if "max_bind_distance" in g
+                                           else {}))
         if scale != 1.0:
             groom = groom.subset(np.linspace(0, groom.num_strands - 1, strands).astype(int))
         return groom.rest_positions.numpy(), groom
