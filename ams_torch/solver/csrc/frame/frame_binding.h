@@ -34,6 +34,12 @@
 namespace ams_torch {
 namespace frame {
 
+// The op's schema, the same for both backends.
+constexpr const char* kFrameSchema =
+    "frame(Tensor[] state, Tensor? external_force, Tensor[] model, Tensor[] poses, float dt, int substeps, "
+    "float ftl_damping, int integrity_model, bool angular, bool angular_reaction, bool implicit_angular, "
+    "bool geometric_stiffness, bool inextensibility, bool hermite, int assemble_substep) -> (Tensor, Tensor)";
+
 enum StateIndex { kX, kV, kGhostRest, kSagOffset, kStateCount };
 enum ModelIndex {
   kRestPositions, kMass, kDrag, kEdge, kBend, kTorsion, kIntegrity, kAngular, kTransition, kBreaking, kSoftRatio,

@@ -224,9 +224,7 @@ std::tuple<at::Tensor, at::Tensor> frame_cpu(at::TensorList state, const std::op
 } // namespace ams_torch
 
 TORCH_LIBRARY(ams_torch_frame_cpu, m) {
-  m.def("frame(Tensor[] state, Tensor? external_force, Tensor[] model, Tensor[] poses, float dt, int substeps, "
-        "float ftl_damping, int integrity_model, bool angular, bool angular_reaction, bool implicit_angular, "
-        "bool geometric_stiffness, bool inextensibility, bool hermite, int assemble_substep) -> (Tensor, Tensor)");
+  m.def(ams_torch::frame::kFrameSchema);
 }
 
 TORCH_LIBRARY_IMPL(ams_torch_frame_cpu, CPU, m) {

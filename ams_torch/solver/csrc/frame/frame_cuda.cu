@@ -1,0 +1,269 @@
+// CUDA kernel of the fused frame of strand dynamics. One thread per (scene, strand) runs the
+// shared per-strand routine of frame.h (the CPU kernel runs the same code on SIMD lanes).
+//
+// Layout choice: the inputs are transposed once per call into a strand-interleaved copy in the
+// workspace (value e of strand s at e · strands + s) by one batched tiled transpose, and the two
+// results are transposed back at the end. The frame reads every input M times (and the matrix,
+// right-hand side and state arrays many times per substep), so with torch's (strand, value)
+// layout each warp-wide access would touch 32 cache lines; interleaved, the 32 threads of a warp
+// read and write 32 consecutive values at every step (coalesced), for the price of one extra read
+// and write of the inputs. The matrix lives only in the workspace (assembled, factored and solved
+// in place). Per-strand data (rest shape, coefficients) is interleaved once per strand and shared
+// by the scenes; per-scene data per (scene, strand). No torch headers: see frame_cuda.h.
+#include <cuda_runtime.h>
+
+#include <stdint.h>
+
+#include "frame.h"
+#include "frame_cuda.h"
+
+namespace ams_torch {
+namespace frame {
+namespace {
+
+constexpr int kTile = 32;          // transpose tile edge
+constexpr int kTileRows = 8;       // rows of threads per transpose block
+constexpr int kMaxJobs = 24;       // arrays per batched transpose
+constexpr int kFrameThreads = 128; // strands per frame block
+constexpr int kPoseThreads = 64;
+constexpr int64_t kMaxGrid = int64_t(1) << 20;
+
+// out[c, r] = in[r, c] for row-major in (rows, cols), for every job of the batch.
+template <class T>
+struct TransposeJob {
+  const T* src;
+  T* dst;
+  int64_t rows, cols, first_tile;
+};
+
+template <class T>
+struct TransposeBatch {
+  TransposeJob<T> job[kMaxJobs];
+  int count = 0;
+  int64_t tiles = 0;
+  void add(const T* src, T* dst, int64_t rows, int64_t cols) {
+    if (rows <= 0 || cols <= 0) return;
+    job[count] = TransposeJob<T>{src, dst, rows, cols, tiles};
+    tiles += ((rows + kTile - 1) / kTile) * ((cols + kTile - 1) / kTile);
+    ++count;
+  }
+};
+
+template <class T>
+__global__ void transpose_batch_kernel(const TransposeBatch<T> batch) {
+  __shared__ T tile[kTile][kTile + 1];
+  for (int64_t t = blockIdx.x; t < batch.tiles; t += gridDim.x) {
+    int j = 0;
+    while (j + 1 < batch.count && batch.job[j + 1].first_tile <= t) ++j;
+    const T* in = batch.job[j].src;
+    T* out = batch.job[j].dst;
+    const int64_t rows = batch.job[j].rows, cols = batch.job[j].cols;
+    const int64_t local = t - batch.job[j].first_tile;
+    const int64_t col_tiles = (cols + kTile - 1) / kTile;
+    const int64_t r0 = (local / col_tiles) * kTile;
+    const int64_t c0 = (local % col_tiles) * kTile;
+    for (int k = threadIdx.y; k < kTile; k += kTileRows) {
+      const int64_t r = r0 + k, c = c0 + threadIdx.x;
+      if (r < rows && c < cols) tile[k][threadIdx.x] = in[r * cols + c];
+    }
+    __syncthreads();
+    for (int k = threadIdx.y; k < kTile; k += kTileRows) {
+      const int64_t c = c0 + k, r = r0 + threadIdx.x;
+      if (r < rows && c < cols) out[c * rows + r] = tile[threadIdx.x][k];
+    }
+    __syncthreads();
+  }
+}
+
+template <class T>
+void launch_transpose(const TransposeBatch<T>& batch, cudaStream_t stream) {
+  if (batch.tiles == 0) return;
+  const unsigned grid = unsigned(batch.tiles < kMaxGrid ? batch.tiles : kMaxGrid);
+  transpose_batch_kernel<T><<<grid, dim3(kTile, kTileRows), 0, stream>>>(batch);
+}
+
+// Workspace arrays (offsets in elements of T; model arrays hold count × strands values,
+// scene arrays count × scenes × strands).
+struct Offsets {
+  int64_t poses, rest, mass, drag, stiffness[3], rest_length[3], integrity, angular, segment;
+  int64_t x, v, ghost_rest, sag_offset, ext, a, b, force, ghost, ghost_velocity, total;
+  Offsets(int64_t B, int64_t S, int64_t N, int64_t M) {
+    const int64_t G = B * S;
+    int64_t o = 0;
+    auto take = [&o](int64_t count) {
+      const int64_t at = o;
+      o += count;
+      return at;
+    };
+    poses = take(B * (M + 1) * kPoseElems);
+    rest = take(3 * N * S);
+    mass = take(N * S);
+    drag = take(N * S);
+    for (int k = 0; k < 3; ++k) stiffness[k] = take((N - 1 - k) * S);
+    for (int k = 0; k < 3; ++k) rest_length[k] = take((N - 1 - k) * S);
+    integrity = take(N * S);
+    angular = take((N - 1) * S);
+    segment = take(N * S);
+    x = take(3 * N * G);
+    v = take(3 * N * G);
+    ghost_rest = take(3 * N * G);
+    sag_offset = take(3 * N * G);
+    ext = take(3 * N * G);
+    a = take(banded::kRowElems * N * G);
+    b = take(3 * N * G);
+    force = take(3 * N * G);
+    ghost = take(3 * N * G);
+    ghost_velocity = take(3 * N * G);
+    total = o;
+  }
+};
+
+template <class T>
+struct Workspace {
+  T* poses;
+  T *rest, *mass, *drag, *stiffness[3], *rest_length[3], *integrity, *angular, *segment;
+  T *x, *v, *ghost_rest, *sag_offset, *ext, *a, *b, *force, *ghost, *ghost_velocity;
+};
+
+template <class T>
+Workspace<T> workspace_views(T* w, const Offsets& o) {
+  Workspace<T> ws;
+  ws.poses = w + o.poses;
+  ws.rest = w + o.rest;
+  ws.mass = w + o.mass;
+  ws.drag = w + o.drag;
+  for (int k = 0; k < 3; ++k) {
+    ws.stiffness[k] = w + o.stiffness[k];
+    ws.rest_length[k] = w + o.rest_length[k];
+  }
+  ws.integrity = w + o.integrity;
+  ws.angular = w + o.angular;
+  ws.segment = w + o.segment;
+  ws.x = w + o.x;
+  ws.v = w + o.v;
+  ws.ghost_rest = w + o.ghost_rest;
+  ws.sag_offset = w + o.sag_offset;
+  ws.ext = w + o.ext;
+  ws.a = w + o.a;
+  ws.b = w + o.b;
+  ws.force = w + o.force;
+  ws.ghost = w + o.ghost;
+  ws.ghost_velocity = w + o.ghost_velocity;
+  return ws;
+}
+
+template <class T>
+__global__ void pose_kernel(const FrameArgs<T> args, int substeps, bool hermite, double dt, T* out) {
+  const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i >= args.scenes * (substeps + 1)) return;
+  substep_pose(args, i / (substeps + 1), int(i % (substeps + 1)), substeps, hermite, dt, out + i * kPoseElems);
+}
+
+template <class T>
+__global__ void __launch_bounds__(kFrameThreads) frame_kernel(const FrameArgs<T> args, const FrameSettings cfg,
+                                                                const Workspace<T> ws, int64_t assemble_substep) {
+  const int64_t S = args.strands, N = args.particles, G = args.scenes * S;
+  const int64_t g = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (g >= G) return;
+  const int64_t b = g / S, s = g % S;
+  auto per_strand = [&](T* base) { return Lanes<T, T>{base + s, S}; };
+  auto per_scene = [&](T* base) { return Lanes<T, T>{base + g, G}; };
+  Strand<T, T> st;
+  st.n = N;
+  st.rest = per_strand(ws.rest);
+  st.mass = per_strand(ws.mass);
+  st.drag = per_strand(ws.drag);
+  for (int k = 0; k < 3; ++k) {
+    st.stiffness[k] = per_strand(ws.stiffness[k]);
+    st.rest_length[k] = per_strand(ws.rest_length[k]);
+  }
+  st.integrity = per_strand(ws.integrity);
+  st.angular = per_strand(ws.angular);
+  st.segment = per_strand(ws.segment);
+  int64_t p = args.num_pinned[s];
+  p = p < 0 ? 0 : (p > N ? N : p);
+  st.pinned = T(p);
+  st.pinned_max = int(p);
+  st.x = per_scene(ws.x);
+  st.v = per_scene(ws.v);
+  st.ghost_rest = per_scene(ws.ghost_rest);
+  st.sag_offset = per_scene(ws.sag_offset);
+  st.ext = per_scene(ws.ext);
+  st.has_ext = args.external_force != nullptr;
+  st.a = per_scene(ws.a);
+  st.b = per_scene(ws.b);
+  st.force = per_scene(ws.force);
+  st.ghost = per_scene(ws.ghost);
+  st.ghost_velocity = per_scene(ws.ghost_velocity);
+  const Material<T> mat{{args.gravity[0], args.gravity[1], args.gravity[2]}, *args.transition, *args.breaking,
+                        *args.soft_ratio};
+  const T* poses = ws.poses + b * (cfg.substeps + 1) * kPoseElems;
+  if (assemble_substep >= 0) {
+    const T* pa = poses + assemble_substep * kPoseElems;
+    assemble(st, mat, cfg, pa, pa + kPoseElems);
+    mirror_blocks(st.a, N);
+  } else {
+    strand_frame(st, mat, cfg, poses);
+  }
+}
+
+} // namespace
+
+int64_t frame_cuda_workspace_elems(int64_t scenes, int64_t strands, int64_t particles, int64_t substeps) {
+  return Offsets(scenes, strands, particles, substeps).total;
+}
+
+template <class T>
+cudaError_t frame_cuda(const FrameArgs<T>& args, const FrameSettings& cfg, int64_t assemble_substep, T* out0, T* out1,
+                       T* workspace, cudaStream_t stream) {
+  const int64_t B = args.scenes, S = args.strands, N = args.particles, M = cfg.substeps, G = B * S;
+  if (G <= 0) return cudaSuccess;
+  const Offsets off(B, S, N, M);
+  const Workspace<T> ws = workspace_views(workspace, off);
+
+  const int64_t pose_count = B * (M + 1);
+  pose_kernel<T><<<unsigned((pose_count + kPoseThreads - 1) / kPoseThreads), kPoseThreads, 0, stream>>>(
+      args, int(M), cfg.hermite, cfg.dt, ws.poses);
+
+  const bool nonhookean = cfg.integrity == kIntegrityNonHookean;
+  TransposeBatch<T> in; // (strands, values) -> (values, strands)
+  in.add(args.rest_positions, ws.rest, S, 3 * N);
+  in.add(args.mass, ws.mass, S, N);
+  in.add(args.drag, ws.drag, S, N);
+  for (int k = 0; k < 3; ++k) {
+    in.add(args.stiffness[k], ws.stiffness[k], S, N - 1 - k);
+    in.add(args.rest_length[k], ws.rest_length[k], S, N - 1 - k);
+  }
+  if (cfg.integrity != kIntegrityNone) in.add(args.integrity, ws.integrity, S, N);
+  if (cfg.angular) in.add(args.angular, ws.angular, S, N - 1);
+  if (nonhookean) in.add(args.segment_length, ws.segment, S, N);
+  in.add(args.x, ws.x, G, 3 * N);
+  in.add(args.v, ws.v, G, 3 * N);
+  in.add(args.ghost_rest, ws.ghost_rest, G, 3 * N);
+  if (nonhookean) in.add(args.sag_offset, ws.sag_offset, G, 3 * N);
+  if (args.external_force != nullptr) in.add(args.external_force, ws.ext, G, 3 * N);
+  launch_transpose(in, stream);
+
+  const int64_t grid = (G + kFrameThreads - 1) / kFrameThreads;
+  if (grid > 0x7fffffffLL) return cudaErrorInvalidConfiguration;
+  frame_kernel<T><<<unsigned(grid), kFrameThreads, 0, stream>>>(args, cfg, ws, assemble_substep);
+
+  TransposeBatch<T> back; // (values, strands) -> (strands, values)
+  if (assemble_substep >= 0) {
+    back.add(ws.a, out0, banded::kRowElems * N, G);
+    back.add(ws.b, out1, 3 * N, G);
+  } else {
+    back.add(ws.x, out0, 3 * N, G);
+    back.add(ws.v, out1, 3 * N, G);
+  }
+  launch_transpose(back, stream);
+  return cudaGetLastError();
+}
+
+template cudaError_t frame_cuda<float>(const FrameArgs<float>&, const FrameSettings&, int64_t, float*, float*, float*,
+                                       cudaStream_t);
+template cudaError_t frame_cuda<double>(const FrameArgs<double>&, const FrameSettings&, int64_t, double*, double*,
+                                        double*, cudaStream_t);
+
+} // namespace frame
+} // namespace ams_torch

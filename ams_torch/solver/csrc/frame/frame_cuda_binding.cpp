@@ -1,0 +1,60 @@
+// Torch binding of the CUDA fused frame kernel: op `ams_torch_frame_cuda::frame` (schema and
+// shapes in frame_binding.h). Built only against a CUDA torch (it needs torch's CUDA headers);
+// the kernels are in frame_cuda.cu, which nvcc compiles without torch headers. Runs on the
+// current CUDA stream of the inputs' device, with its workspace from torch's caching allocator;
+// no host synchronisation (capturable by CUDA graphs).
+#include <ATen/Dispatch.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/empty.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
+#include <torch/library.h>
+
+#include <optional>
+#include <tuple>
+
+#include "frame_binding.h"
+#include "frame_cuda.h"
+
+namespace ams_torch {
+namespace frame {
+
+std::tuple<at::Tensor, at::Tensor> frame_cuda_op(at::TensorList state, const std::optional<at::Tensor>& ext,
+                                                 at::TensorList model, at::TensorList poses, double dt,
+                                                 int64_t substeps, double ftl_damping, int64_t integrity_model,
+                                                 bool angular, bool angular_reaction, bool implicit_angular,
+                                                 bool geometric_stiffness, bool inextensibility, bool hermite,
+                                                 int64_t assemble_substep) {
+  constexpr const char* op = "ams_torch_frame_cuda::frame";
+  const FrameInputs in = check_frame_inputs(op, state, ext, model, poses, dt, substeps, ftl_damping, integrity_model,
+                                            angular, angular_reaction, implicit_angular, geometric_stiffness,
+                                            inextensibility, hermite, assemble_substep);
+  const at::Tensor& x = in.state[kX];
+  TORCH_CHECK(x.is_cuda(), op, ": CUDA tensors expected");
+  const c10::cuda::CUDAGuard guard(x.device());
+  auto out = frame_outputs(in);
+  if (in.scenes == 0 || in.strands == 0) return out;
+  at::Tensor workspace =
+      at::empty({frame_cuda_workspace_elems(in.scenes, in.strands, in.particles, substeps)}, x.options());
+  const cudaStream_t stream = c10::cuda::getCurrentCUDAStream(x.device().index()).stream();
+  cudaError_t err = cudaSuccess;
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), op, [&] {
+    err = frame_cuda<scalar_t>(frame_args<scalar_t>(in), in.settings, in.assemble_substep,
+                               std::get<0>(out).mutable_data_ptr<scalar_t>(),
+                               std::get<1>(out).mutable_data_ptr<scalar_t>(), workspace.mutable_data_ptr<scalar_t>(),
+                               stream);
+  });
+  TORCH_CHECK(err == cudaSuccess, op, ": kernel launch failed: ", cudaGetErrorString(err));
+  return out;
+}
+
+} // namespace frame
+} // namespace ams_torch
+
+TORCH_LIBRARY(ams_torch_frame_cuda, m) {
+  m.def(ams_torch::frame::kFrameSchema);
+}
+
+TORCH_LIBRARY_IMPL(ams_torch_frame_cuda, CUDA, m) {
+  m.impl("frame", &ams_torch::frame::frame_cuda_op);
+}
