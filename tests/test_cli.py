@@ -125,9 +125,8 @@ def test_divergence_says_whether_the_input_was_finite(tmp_path, capsys):
              rotvecs=np.zeros((3, 3)), dt=0.02)
     recorded = tmp_path / "recorded.toml"
     recorded.write_text(TINY.replace('type = "shake"', f'type = "recorded"\npath = "{poses.name}"'))
-    msg = _one_error_line(capsys, ["simulate", str(recorded)] + out)
-    assert msg.startswith(f"error: {recorded}: the scene input is not finite: [motion]: the pose at t = ")
-    assert "This is not a stability problem (more substeps will not help)" in msg
+    msg = _one_error_line(capsys, ["simulate", str(recorded)] + out)  # refused when read, or when simulated
+    assert msg.startswith(f"error: {recorded}: ") and "[motion]" in msg and "finite" in msg
     stiff = tmp_path / "fast.toml"  # finite input that the divergence guard stops: the source's advice stands
     stiff.write_text(TINY + "[params]\nmax_relative_speed = 1e-6\n")
     msg = _one_error_line(capsys, ["simulate", str(stiff)] + out)
@@ -196,3 +195,29 @@ def test_render_a_dataset_sequence_and_corrupt_files(tmp_path, capsys):
         f"error: no such file to render {str(tmp_path / 'nothing.h5')!r}"
     assert "--sequence picks a sequence of a dataset" in _one_error_line(
         capsys, ["render", str(tmp_path / "o" / "sequence.h5"), "--sequence", "0"])
+
+
+def test_nonfinite_inputs_are_named():
+    """What the CLI and generate say when a run stops and its input was never finite."""
+    import torch
+
+    from ams_torch.apps.datagen import nonfinite_inputs
+    from ams_torch.apps.datagen.simulate import _diverged
+    from ams_torch.apps.motion import Motion, Shake
+    from ams_torch import SimulationDiverged
+
+    class Late(Motion):  # NaN from t = 0.03 s on
+        def state(self, t):
+            z = np.zeros(3)
+            return z, z + (np.nan if t > 0.03 else 0.0), z, z
+
+    rest = torch.zeros(2, 4, 3)
+    assert nonfinite_inputs(rest, [("[motion]", Shake())], 5, 0.02) is None
+    bad = nonfinite_inputs(rest, [("[motion]", Shake()), ("[colliders[0].motion]", Late())], 5, 0.02)
+    assert bad.startswith("[colliders[0].motion]: the pose at t = 0.04 s (frame 2) holds NaN/Inf")
+    rest[1, 2, 0] = float("inf")
+    assert nonfinite_inputs(rest, [], 5, 0.02) == "the groom's rest positions hold NaN/Inf (strand 1)"
+    err = _diverged(SimulationDiverged("simulation diverged at frame 2", frame=2, strands=[[0]]), "r.toml: group 0", bad)
+    assert str(err).startswith("r.toml: group 0: the scene input is not finite: [colliders[0].motion]") and err.frame == 2
+    assert err.bad_input
+    assert "at frame 2. This is not a stability problem (more substeps will not help)" in str(err)

@@ -55,7 +55,9 @@ def _diverged(err, what: str, bad: Optional[str]):
                f"will not help): fix the input")
     else:
         msg = f"{what}: {err}"
-    return SimulationDiverged(msg, frame=frame, strands=getattr(err, "strands", []))
+    out = SimulationDiverged(msg, frame=frame, strands=getattr(err, "strands", []))
+    out.bad_input = bool(bad) or bool(getattr(err, "bad_input", False))
+    return out
 
 
 # -- simulation of one batch group ------------------------------------------------------------
