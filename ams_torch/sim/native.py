@@ -1,4 +1,5 @@
-"""The fused native frame of strand dynamics (SPEC §15): one registered op, CPU and CUDA kernels.
+"""The fused native kernels of the step (SPEC §15): the frame of strand dynamics and the collision
+stage, each one registered op with CPU and CUDA kernels.
 
 ``native_frame_dynamics`` has the signature of :func:`ams_torch.sim.dynamics.frame_dynamics` and
 returns the same ``(x, v)``: M substeps (substep head poses, ghosts and pin targets, assembly of
@@ -29,20 +30,32 @@ assembled system instead, ``blocks`` (..., S, N, 4, 3, 3) and ``rhs`` (..., S, N
 """
 from __future__ import annotations
 
+from functools import partial
+from math import isnan, nan
 from types import SimpleNamespace
 from typing import List, Optional, Tuple
 
 import torch
 
 from ams_torch.geometry.pose import Pose
+from ams_torch.geometry.sdf import SDFGrid
 from ams_torch.sim.assembly import assemble_system
-from ams_torch.sim.dynamics import frame_dynamics, substep_poses
+from ams_torch.sim.dynamics import frame_dynamics, inextensibility, substep_poses
 from ams_torch.sim.model import Coefficients, Model
 from ams_torch.sim.state import Config, ExternalForce
 from ams_torch.solver import build as _native
+from ams_torch.stages.collide import (
+    CapsuleCollider,
+    HollowSphereCollider,
+    MeshCollider,
+    PlaneCollider,
+    SphereCollider,
+    collide,
+)
 
 __all__ = ["NATIVE_DTYPES", "native_frame_available", "native_frame_supported", "native_frame_dynamics",
-           "native_frame_assembly", "frame_dynamics_op", "frame_assembly_op"]
+           "native_frame_assembly", "frame_dynamics_op", "frame_assembly_op", "native_collisions_available",
+           "native_collisions_supported", "native_collisions", "collisions_world", "collisions_op"]
 
 NATIVE_DTYPES = (torch.float32, torch.float64)
 _KINDS = {"cpu": "frame_cpu", "cuda": "frame_cuda"}
@@ -291,3 +304,216 @@ def native_frame_assembly(model: Model, coeffs: Coefficients, config: Config, x:
     kg·m/s, the layout of :func:`ams_torch.sim.assembly.assemble_system`."""
     args = op_arguments(model, coeffs, config, x, v, ghost_rest, sag_offset, pose0, pose1, hermite, external_force)
     return frame_assembly_op(*args, int(substep))
+
+
+# ==============================================================================================
+# The collision stage (SPEC §8, §15): ams_torch::collisions
+# ==============================================================================================
+#
+# ``native_collisions(model, config, x, v, head_pose, world_poses)`` is the collision stage of
+# :func:`ams_torch.sim.step.collisions` for colliders already placed in the world
+# (:func:`~ams_torch.stages.collide.resolve_world_poses`): the contact response of every collider
+# in order, then ``config.collision_rounds`` rounds of follow-the-leader and push-out, fused per
+# strand (``csrc/collide``; the follow-the-leader routine is the fused frame's). Colliders of
+# the five library classes are native (sphere, capsule, plane, hollow sphere, mesh); any other
+# (e.g. a subclass with its own distance) keeps the whole stage on the torch path.
+
+_COLLIDE_KINDS = {"cpu": "collide_cpu", "cuda": "collide_cuda"}
+_COLLIDER_TYPES = {SphereCollider: 0, CapsuleCollider: 1, PlaneCollider: 2, HollowSphereCollider: 3, MeshCollider: 4}
+MAX_COLLIDERS = 16
+
+
+def native_collisions_available(device, dtype) -> bool:
+    """Whether the native collision kernel runs for tensors of ``device`` and ``dtype`` (builds it
+    on first call; not traceable: decide it when the simulator is built)."""
+    kind = _COLLIDE_KINDS.get(torch.device(device).type)
+    return kind is not None and dtype in NATIVE_DTYPES and _native.native_ops(kind) is not None
+
+
+def native_collisions_supported(model: Model, x: torch.Tensor, v: torch.Tensor, head_pose: Pose,
+                                world_poses) -> bool:
+    """Whether :func:`native_collisions` can use the native op (traceable checks only): every
+    collider one of the five library classes (at most 16), float32/float64 on CPU/CUDA, and no
+    gradient to keep."""
+    cols = list(model.colliders)
+    if len(cols) > MAX_COLLIDERS or any(type(c) not in _COLLIDER_TYPES for c in cols):
+        return False
+    if x.dtype not in NATIVE_DTYPES or x.device.type not in _COLLIDE_KINDS:
+        return False
+    if torch.is_grad_enabled():
+        tensors = [x, v, head_pose.rotation] + [t for p in world_poses if p is not None for t in
+                                                (p.rotation, p.translation, p.linear_velocity,
+                                                 p.angular_velocity) if t is not None]
+        tensors += [t for c in cols for t in c.parameters()]
+        if any(t.requires_grad for t in tensors):
+            return False
+    return True
+
+
+def collisions_world(model: Model, config: Config, x: torch.Tensor, v: torch.Tensor, head_pose: Pose,
+                     world_poses, colliders=None) -> tuple:
+    """The torch definition of the stage for given world poses: ``step.collisions`` after its
+    pose resolution. x, v: (..., S, N, 3) m, m/s. Returns the new (x, v)."""
+    cols = list(model.colliders) if colliders is None else list(colliders)
+    free = ~model.pinned
+    x, v = collide(x, v, config.dt, cols, world_poses, free=free)
+    if config.inextensibility:
+        for _ in range(config.collision_rounds):
+            x, v = inextensibility(model, config, x, v, head_pose, config.dt)
+            x, v = collide(x, v, 0.0, cols, world_poses, free=free)
+    return x, v
+
+
+def _as(t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    return t if t.dtype == x.dtype and t.device == x.device else t.to(device=x.device, dtype=x.dtype)
+
+
+def _pose_tensors(pose: Optional[Pose], x: torch.Tensor) -> tuple:
+    """[R, t, lin, ω] for the op (batch () or x's scenes) and whether the pose has velocities."""
+    batch = x.shape[:-3]
+    if pose is None:
+        pose = Pose.identity(device=x.device, dtype=x.dtype)
+    r, t = _as(pose.rotation, x), _as(pose.translation, x)
+    vel = pose.has_velocity
+    lin, ang = (_as(pose.linear_velocity, x), _as(pose.angular_velocity, x)) if vel else (t, t)
+    out = []
+    for a, tail in ((r, 2), (t, 1), (lin, 1), (ang, 1)):
+        if tuple(a.shape[:-tail]) not in ((), tuple(batch)):  # a prefix of the scene dims: broadcast
+            own = a.shape[:-tail]
+            a = a.reshape(own + (1,) * (len(batch) - len(own)) + a.shape[-tail:]).expand(
+                batch + a.shape[-tail:]).contiguous()
+        out.append(a)
+    return out, vel
+
+
+def collision_arguments(model: Model, config: Config, x: torch.Tensor, v: torch.Tensor, head_pose: Pose,
+                        world_poses) -> tuple:
+    """The op's arguments for these inputs (no torch op unless a pose must be broadcast or a
+    collider's data converted to x's dtype)."""
+    tensors, poses, ints, floats = [], [], [], []
+    for col, pose in zip(model.colliders, world_poses):
+        kind = _COLLIDER_TYPES[type(col)]
+        f = _as(col.friction, x)
+        if kind == 0:
+            geom, nums = (col.center, f, f), (col.radius, 0.0, 0.0)
+        elif kind == 1:
+            geom, nums = (col.a, col.b, f), (col.radius, 0.0, 0.0)
+        elif kind == 2:
+            geom, nums = (col.point, col.normal, f), (0.0, 0.0, 0.0)
+        elif kind == 3:
+            geom = (col.center, col._frame, f)
+            nums = (col.radius, col.thickness, nan if col.cut_height is None else col.cut_height)
+        else:
+            grid = col.sdf
+            geom, nums = (grid._volume, grid.origin, grid.upper), (0.0, 0.0, 0.0)
+        tensors += [f] + [_as(g, x) for g in geom]
+        pose_list, vel = _pose_tensors(pose, x)
+        poses += pose_list
+        ints += [kind, int(col.projection_iterations), int(vel)]
+        floats += [float(n) for n in nums]
+    head, _ = _pose_tensors(Pose(head_pose.rotation, head_pose.translation, check=False), x)
+    model_list = [model.rest_positions, model.edge_rest_length, model.num_pinned]
+    return (x, v, model_list, head[0], tensors, poses, ints, floats, float(config.dt),
+            int(config.collision_rounds), bool(config.inextensibility), float(config.ftl_damping))
+
+
+def _collider_views(tensors, ints, floats) -> list:
+    """Collider-like objects (distance_and_normal, friction, projection_iterations) from the op's
+    arguments, evaluating the library classes' own distance code."""
+    out = []
+    for c in range(len(ints) // 3):
+        kind, iters = ints[3 * c], ints[3 * c + 1]
+        friction, g0, g1, g2 = tensors[4 * c:4 * c + 4]
+        f0, f1, f2 = floats[3 * c:3 * c + 3]
+        if kind == 0:
+            fn = partial(SphereCollider.distance_and_normal, SimpleNamespace(center=g0, radius=f0))
+        elif kind == 1:
+            fn = partial(CapsuleCollider.distance_and_normal, SimpleNamespace(a=g0, b=g1, radius=f0))
+        elif kind == 2:
+            fn = partial(PlaneCollider.distance_and_normal, SimpleNamespace(point=g0, normal=g1))
+        elif kind == 3:
+            fn = partial(HollowSphereCollider.distance_and_normal, SimpleNamespace(
+                center=g0, _frame=g1, radius=f0, thickness=f1, cut_height=None if isnan(f2) else f2))
+        else:
+            grid = SDFGrid.__new__(SDFGrid)
+            grid._volume, grid.origin, grid.upper = g0, g1, g2
+            grid.values, grid.spacing = g0[0, 0].permute(2, 1, 0), nan
+            fn = grid.distance_and_normal
+        out.append(SimpleNamespace(distance_and_normal=fn, friction=friction, projection_iterations=iters))
+    return out
+
+
+def _collisions_torch(x, v, model, head_rotation, tensors, poses, ints, floats, dt, rounds, inext, damping):
+    rest, edge, num_pinned = model
+    n = rest.shape[-2]
+    mview = SimpleNamespace(rest_positions=rest, edge_rest_length=edge,
+                            pinned=torch.arange(n, device=rest.device)[None, :] < num_pinned[:, None])
+    config = Config(dt=dt, inextensibility=inext, ftl_damping=damping, collision_rounds=rounds)
+    batch = x.shape[:-3]
+
+    def shaped(t, tail):
+        return t.reshape((() if t.numel() == tail[0] * (tail[1] if len(tail) > 1 else 1) else batch) + tail)
+
+    world = []
+    for c in range(len(ints) // 3):
+        r, t, lin, ang = poses[4 * c:4 * c + 4]
+        r, t = shaped(r, (3, 3)), shaped(t, (3,))
+        world.append(Pose(r, t, shaped(lin, (3,)), shaped(ang, (3,)), check=False) if ints[3 * c + 2]
+                     else Pose(r, t, check=False))
+    head_r = shaped(head_rotation, (3, 3))
+    head = Pose(head_r, head_r[..., 0], check=False)
+    xo, vo = collisions_world(mview, config, x, v, head, world, _collider_views(tensors, ints, floats))
+    return (xo.clone() if xo is x else xo), (vo.clone() if vo is v else vo)
+
+
+@torch.library.custom_op("ams_torch::collisions", mutates_args=())
+def collisions_op(x: torch.Tensor, v: torch.Tensor, model: List[torch.Tensor], head_rotation: torch.Tensor,
+                  collider_tensors: List[torch.Tensor], collider_poses: List[torch.Tensor], collider_ints: List[int],
+                  collider_floats: List[float], dt: float, rounds: int, inextensibility: bool,
+                  ftl_damping: float) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Registered op ``ams_torch::collisions``; default (any device): the torch definition.
+
+    x, v: (..., S, N, 3) m, m/s; model: [rest_positions (S, N, 3) m, edge_rest_length (S, N−1) m,
+    num_pinned (S,) int64]; head_rotation (P, 3, 3) (follow-the-leader's fallback directions);
+    per collider c: collider_tensors[4c:4c+4] = friction () and its geometry tensors,
+    collider_poses[4c:4c+4] = world R (P, 3, 3), t (P, 3) m, linear (m/s) and angular (rad/s)
+    velocity (P, 3), collider_ints[3c:3c+3] = type (sphere 0, capsule 1, plane 2, hollow sphere
+    3, mesh 4), push-out passes, has velocity; collider_floats[3c:3c+3] = the shape's numbers
+    (``collide_binding.h``). P = 1 or the number of scenes. dt s; rounds of follow-the-leader
+    and push-out when ``inextensibility``. Returns new (x, v), each (..., S, N, 3).
+    """
+    return _collisions_torch(x, v, model, head_rotation, collider_tensors, collider_poses, collider_ints,
+                             collider_floats, dt, rounds, inextensibility, ftl_damping)
+
+
+def _collisions_kernel(x, v, model, head_rotation, tensors, poses, ints, floats, *settings):
+    ns = None
+    if x.dtype in NATIVE_DTYPES and not any(t.requires_grad for t in [x, v, head_rotation, *tensors, *poses]):
+        ns = _native.native_ops(_COLLIDE_KINDS[x.device.type])
+    if ns is None:
+        return _collisions_torch(x, v, model, head_rotation, tensors, poses, ints, floats, *settings)
+    return tuple(ns.collide(x, v, model, head_rotation, tensors, poses, ints, floats, *settings))
+
+
+collisions_op.register_kernel("cpu")(_collisions_kernel)
+collisions_op.register_kernel("cuda")(_collisions_kernel)
+
+
+@collisions_op.register_fake
+def _collisions_fake(x, v, model, head_rotation, tensors, poses, ints, floats, *settings):
+    return torch.empty_like(x, memory_format=torch.contiguous_format), \
+        torch.empty_like(v, memory_format=torch.contiguous_format)
+
+
+def native_collisions(model: Model, config: Config, x: torch.Tensor, v: torch.Tensor, head_pose: Pose,
+                      world_poses) -> tuple:
+    """The collision stage by the fused native kernel: ``step.collisions`` for colliders at the
+    given world poses (one per ``model.colliders``, from ``resolve_world_poses``; batch () or the
+    scenes'). x, v: (..., S, N, 3) m, m/s; head_pose: the head at the end of the frame. Returns
+    the new (x, v). Inputs :func:`native_collisions_supported` rejects take the torch definition
+    (:func:`collisions_world`); without colliders nothing is done."""
+    if len(model.colliders) == 0 and not (config.inextensibility and config.collision_rounds):
+        return x, v
+    if not native_collisions_supported(model, x, v, head_pose, world_poses):
+        return collisions_world(model, config, x, v, head_pose, world_poses)
+    return collisions_op(*collision_arguments(model, config, x, v, head_pose, world_poses))
