@@ -69,18 +69,30 @@ def _native_ns(device: str):
     return ns
 
 
+def set_pinned(model, counts) -> None:
+    """Pin the first counts[s] particles of strand s (an int for all strands), on the model itself
+    (independent of how Params chooses the pinned root)."""
+    s, n = model.num_strands, model.num_particles
+    counts = torch.as_tensor(counts, dtype=torch.int64, device=model.device).expand(s).clone()
+    model.num_pinned = counts
+    model.pinned = torch.arange(n, device=model.device)[None, :] < counts[:, None]
+    model.has_pinned = bool(counts.max() > 0)
+
+
 def make_scene(dtype=F64, device="cpu", strands=13, particles=12, scenes=None, groom="sphere", seed=0,
-               jitter=1e-3, frame=3, **params):
+               jitter=1e-3, frame=3, num_pinned=2, **params):
     """A simulator, a perturbed state at a shaken head pose and the next pose (with velocities).
 
     scenes: None for one scene (state (S, N, 3)), or B for B scenes with different head motions.
     jitter: m, random displacement of every particle (velocities get 100·jitter m/s), so springs
-    are stretched and segments turned. Returns (sim, state, pose1).
+    are stretched and segments turned. num_pinned: pinned root particles (set on the model).
+    Returns (sim, state, pose1).
     """
     rest = {"sphere": lambda: testing.sphere_groom(strands, particles, dtype=F64, seed=seed),
             "wisp": lambda: testing.wisp(strands, particles, seed=seed),
             "curly": lambda: testing.curly_strand(particles)}[groom]()
     sim = ams_torch.Simulator(rest, ams_torch.Params(**params), dtype=dtype, device=device)
+    set_pinned(sim.model, num_pinned)
     dt = sim.config.dt
 
     def motion(b):
@@ -194,14 +206,18 @@ def _term_case(term: str, dtype=F64, num_pinned=2, substeps=2):
     gravity = changes.pop("gravity", (0.0, 0.0, 0.0))
     # soft ghosts far from their particles: the non-Hookean law sees all three branches
     sim, state, pose1 = make_scene(dtype=dtype, jitter=3e-3, gravity=gravity, num_pinned=num_pinned,
-                                   substeps=substeps, integrity_break=0.25, integrity_transition=0.1,
-                                   integrity_model=changes.get("integrity_model", "hookean"))
+                                   substeps=substeps, integrity_model=changes.get("integrity_model", "hookean"))
     g = torch.Generator().manual_seed(7)
     coeffs = _isolate(coefficients(sim.model), keep, g)
     config = replace(sim.config, integrity_model="none" if "integrity" not in keep else
                      changes.get("integrity_model", "hookean"), angular="angular" in keep,
                      **{k: v for k, v in changes.items() if k in CONFIG_FIELDS and k != "integrity_model"})
     ext = (1e-5 * torch.randn(state.x.shape, generator=g, dtype=F64)).to(dtype) if external else None
+    if config.nonhookean:  # transition and breaking points inside the elongations present: every branch
+        anchor = state.pose.to_world(state.ghost_rest) - state.pose.rotate(state.sag_offset)
+        e = ((anchor - state.x).norm(dim=-1) / sim.model.segment_length).flatten().double()
+        t, b = torch.quantile(e, 0.3), torch.quantile(e, 0.7)
+        coeffs = coeffs._replace(transition=t.to(dtype), breaking=b.to(dtype))
     return sim, state, pose1, coeffs, config, ext
 
 
@@ -255,6 +271,8 @@ def test_assembly_pinned_rows(native_cpu, num_pinned):
 # ---------------------------------------------------------------------------------------
 
 FRAME_CASES = {
+    # name: Params changes; "scale": factors applied to coefficient terms (independent of how the
+    # material is parametrised)
     "default": {},
     "substeps3": {"substeps": 3},
     "nonhookean": {"integrity_model": "nonhookean", "integrity_transition": 0.2, "integrity_break": 0.5},
@@ -265,19 +283,30 @@ FRAME_CASES = {
     "no_pins": {"num_pinned": 0},
     "one_pin": {"num_pinned": 1},
     "three_pins": {"num_pinned": 3},
-    "zero_edge": {"stretch_stiffness": 0.0},
-    "zero_bend_torsion": {"bend_scale": 0.0, "torsion_scale": 0.0},
-    "zero_integrity": {"integrity_stiffness": 0.0, "sag_free": False},
-    "zero_angular": {"angular_stiffness": 0.0},
-    "zero_drag": {"drag": 0.0},
+    "zero_edge": {"scale": {"edge": 0.0}},
+    "zero_bend_torsion": {"scale": {"bend": 0.0, "torsion": 0.0}},
+    "zero_integrity": {"scale": {"integrity": 0.0}},
+    "zero_angular": {"scale": {"angular": 0.0}},
+    "zero_drag": {"scale": {"drag": 0.0}},
+    "stiff": {"scale": {"edge": 30.0, "bend": 30.0, "torsion": 30.0}, "substeps": 2},
     "ftl_no_damping": {"ftl_damping": 0.0},
 }
 
 
+def case_scene(case: str, **kw):
+    """make_scene for FRAME_CASES[case]; returns (sim, state, pose1, coeffs)."""
+    params = dict(FRAME_CASES[case])
+    scale = params.pop("scale", {})
+    params.update(kw)
+    sim, state, pose1 = make_scene(**params)
+    c = coefficients(sim.model)
+    return sim, state, pose1, c._replace(**{k: getattr(c, k) * v for k, v in scale.items()})
+
+
 @pytest.mark.parametrize("case", list(FRAME_CASES))
 def test_frame_float64(native_cpu, case):
-    sim, state, pose1 = make_scene(jitter=2e-3, **FRAME_CASES[case])
-    args = frame_args(sim, state, pose1)
+    sim, state, pose1, coeffs = case_scene(case, jitter=2e-3)
+    args = frame_args(sim, state, pose1, coeffs)
     x_ref, v_ref = frame_dynamics(*args)
     x_nat, v_nat = native_frame(native_cpu, *args)
     assert rel(x_nat, x_ref) <= 1e-10 and rel(v_nat, v_ref) <= 1e-10, (rel(x_nat, x_ref), rel(v_nat, v_ref))
@@ -325,8 +354,7 @@ def test_frame_per_strand_pinned_counts(native_cpu):
     """num_pinned differs between strands (and so between SIMD lanes of one group)."""
     sim, state, pose1 = make_scene(strands=11, particles=9, substeps=2)
     counts = torch.tensor([0, 1, 2, 3, 2, 1, 0, 3, 2, 2, 1], dtype=torch.int64)
-    sim.model.num_pinned = counts
-    sim.model.pinned = torch.arange(9)[None, :] < counts[:, None]
+    set_pinned(sim.model, counts)
     args = frame_args(sim, state, pose1)
     x_ref, v_ref = frame_dynamics(*args)
     x_nat, v_nat = native_frame(native_cpu, *args)
@@ -339,13 +367,14 @@ def test_frame_per_strand_pinned_counts(native_cpu):
 
 
 def test_frame_nonhookean_yielding(native_cpu):
-    """Particles pulled beyond the breaking point (the yield branch and its slope ρ)."""
-    sim, state, pose1 = make_scene(jitter=6e-3, integrity_model="nonhookean", integrity_transition=0.2,
-                                   integrity_break=0.4, substeps=2)
+    """Particles pulled beyond the breaking point (the yield branch and its slope ρ): half of them."""
+    sim, state, pose1 = make_scene(jitter=6e-3, integrity_model="nonhookean", substeps=2)
     anchor = state.pose.to_world(state.ghost_rest) - state.pose.rotate(state.sag_offset)
-    e = (anchor - state.x).norm(dim=-1) / sim.model.segment_length
-    assert (e > 0.4).float().mean() > 0.3
-    args = frame_args(sim, state, pose1)
+    e = ((anchor - state.x).norm(dim=-1) / sim.model.segment_length).flatten()
+    c = coefficients(sim.model)
+    coeffs = c._replace(transition=torch.quantile(e, 0.2).to(c.transition.dtype),
+                        breaking=torch.quantile(e, 0.5).to(c.breaking.dtype))
+    args = frame_args(sim, state, pose1, coeffs)
     x_ref, v_ref = frame_dynamics(*args)
     x_nat, v_nat = native_frame(native_cpu, *args)
     assert rel(x_nat, x_ref) <= 1e-10 and rel(v_nat, v_ref) <= 1e-10
@@ -375,12 +404,10 @@ def native_frame_dynamics_checked(ns, args):
 @pytest.mark.parametrize("case", ["default", "nonhookean", "stiff"])
 def test_frame_float32(native_cpu, case):
     """float32: no farther from the float64 frame than twice the torch float32 frame (module doc)."""
-    kw = {"default": {}, "nonhookean": {"integrity_model": "nonhookean", "geometric_stiffness": True},
-          "stiff": {"stretch_stiffness": 30.0, "substeps": 2}}[case]
     out = {}
     for dtype in (F32, F64):
-        sim, state, pose1 = make_scene(dtype=dtype, strands=21, particles=16, **kw)
-        args = frame_args(sim, state, pose1)
+        sim, state, pose1, coeffs = case_scene(case, dtype=dtype, strands=21, particles=16)
+        args = frame_args(sim, state, pose1, coeffs)
         out[dtype] = frame_dynamics(*args), native_frame(native_cpu, *args)
     (x64, v64), _ = out[F64]
     (x_t, v_t), (x_n, v_n) = out[F32]
@@ -442,6 +469,7 @@ def test_batched_equals_one_at_a_time(native_cpu):
     x_all, v_all = native_frame(native_cpu, *args)
     for s in (0, 5, 10):
         one = ams_torch.Simulator(sim.model.rest_positions[s:s + 1], sim.params, dtype=F64)
+        set_pinned(one.model, 2)
         st = state.replace(x=state.x[s:s + 1], v=state.v[s:s + 1], ghost_rest=state.ghost_rest[s:s + 1],
                            sag_offset=state.sag_offset[s:s + 1])
         x1, v1 = native_frame(native_cpu, *frame_args(one, st, pose1))
@@ -607,11 +635,10 @@ def test_cuda_matches_cpu(native_cpu, case, dtype):
     """The CUDA kernel runs frame.h's arithmetic: equal to the CPU kernel to rounding, and the
     assembled system too."""
     ns_cuda = _native_ns("cuda")
-    kw = FRAME_CASES[case]
     out = {}
     for device in ("cpu", "cuda"):
-        sim, state, pose1 = make_scene(dtype=dtype, device=device, scenes=2, substeps=2, strands=37, **kw)
-        args = frame_args(sim, state, pose1)
+        sim, state, pose1, coeffs = case_scene(case, dtype=dtype, device=device, scenes=2, strands=37)
+        args = frame_args(sim, state, pose1, coeffs)
         ns = native_cpu if device == "cpu" else ns_cuda
         out[device] = native_frame(ns, *args), native_system(ns, *args[:10], 1)
     tol = 1e-12 if dtype == F64 else 1e-5
