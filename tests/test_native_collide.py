@@ -11,14 +11,12 @@ batched matrix products. Those differences only matter where they flip a contact
 σ < 0, i.e. for particles at |σ| ≈ 1e-17 m; a flipped particle has just been pushed onto the
 surface with no approaching velocity, so the response it gains or loses is itself of rounding
 size (the 60-frame test keeps strands in contact on every frame to check this).
+
+The AMS_TORCH_NATIVE=0 fallback of both fused ops is tested in one subprocess, in
+tests/test_native_frame.py::test_fallback_without_native.
 """
 from __future__ import annotations
 
-import json
-import os
-import subprocess
-import sys
-import textwrap
 from pathlib import Path
 
 import pytest
@@ -33,8 +31,14 @@ from ams_torch.sim.dynamics import frame_dynamics
 from ams_torch.sim.model import coefficients
 from ams_torch.sim.step import collisions
 from ams_torch.solver import build as _native
-from ams_torch.stages.collide import (CapsuleCollider, HollowSphereCollider, MeshCollider, PlaneCollider,
-                                      SphereCollider, resolve_world_poses)
+from ams_torch.stages.collide import (
+    CapsuleCollider,
+    HollowSphereCollider,
+    MeshCollider,
+    PlaneCollider,
+    SphereCollider,
+    resolve_world_poses,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 F64, F32 = torch.float64, torch.float32
@@ -271,36 +275,6 @@ def test_opcheck_and_compile(native_cpu):
     with torch.no_grad():
         got, want = compiled(x, v), stage(x, v)
     assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
-
-
-_FALLBACK_SCRIPT = textwrap.dedent(
-    """
-    import json, os, sys
-    sys.path.insert(0, {tests!r})
-    os.environ["AMS_TORCH_NATIVE"] = "0"
-    import torch
-    from test_native_collide import make_case
-    from ams_torch.sim import native
-    from ams_torch.sim.step import collisions
-    from ams_torch.stages.collide import resolve_world_poses
-    sim, x, v, head, _ = make_case("all", scenes=2)
-    world = resolve_world_poses(sim.colliders, head, None)
-    with torch.no_grad():
-        got = native.native_collisions(sim.model, sim.config, x, v, head, world)
-        want = collisions(sim.model, sim.config, x, v, head, ())
-    print(json.dumps(dict(same=bool(torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])),
-                          available=native.native_collisions_available("cpu", torch.float64))))
-    """
-)
-
-
-def test_fallback_without_native(tmp_path):
-    env = dict(os.environ, AMS_TORCH_CACHE=str(tmp_path / "cache"), PYTHONPATH=str(REPO))
-    proc = subprocess.run([sys.executable, "-c", _FALLBACK_SCRIPT.format(tests=str(REPO / "tests"))], env=env,
-                          capture_output=True, text=True, timeout=300, check=False)
-    assert proc.returncode == 0, proc.stderr[-4000:]
-    out = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert out == {"same": True, "available": False}, out
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")

@@ -542,10 +542,10 @@ def test_opcheck(native_cpu, device):
         sim, state, pose1 = make_scene(dtype=dtype, device=device, strands=5, particles=6, scenes=2, substeps=2, **kw)
         g = torch.Generator().manual_seed(5)
         force = (1e-5 * torch.randn(state.x.shape, generator=g, dtype=F64)).to(dtype=dtype, device=device)
-        for ext in (None, force):
-            op_args = native.op_arguments(*frame_args(sim, state, pose1)[:10], ext)
-            torch.library.opcheck(torch.ops.ams_torch.frame_dynamics.default, op_args)
-            torch.library.opcheck(torch.ops.ams_torch.frame_assembly.default, op_args + (1,))
+        op_args = native.op_arguments(*frame_args(sim, state, pose1)[:10], force)
+        torch.library.opcheck(torch.ops.ams_torch.frame_dynamics.default, op_args)
+        op_args = native.op_arguments(*frame_args(sim, state, pose1)[:10], None)
+        torch.library.opcheck(torch.ops.ams_torch.frame_assembly.default, op_args + (1,))
 
 
 def test_torch_compile_fullgraph(native_cpu):
@@ -592,9 +592,12 @@ _FALLBACK_SCRIPT = textwrap.dedent(
     os.environ["AMS_TORCH_NATIVE"] = "0"
     import torch
     from test_native_frame import make_scene, frame_args
+    from test_native_collide import make_case
     from ams_torch.sim import native
     from ams_torch.sim.dynamics import frame_dynamics
+    from ams_torch.sim.step import collisions
     from ams_torch.solver import build
+    from ams_torch.stages.collide import resolve_world_poses
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         sim, state, pose1 = make_scene(scenes=2, substeps=2)
@@ -602,23 +605,31 @@ _FALLBACK_SCRIPT = textwrap.dedent(
         with torch.no_grad():
             x_n, v_n = native.native_frame_dynamics(*args)
             x_t, v_t = frame_dynamics(*args)
+            csim, x, v, head, _ = make_case("all", scenes=2)
+            world = resolve_world_poses(csim.colliders, head, None)
+            got = native.native_collisions(csim.model, csim.config, x, v, head, world)
+            want = collisions(csim.model, csim.config, x, v, head, ())
     rel = max(((x_n - x_t).norm() / x_t.norm()).item(), ((v_n - v_t).norm() / v_t.norm()).item())
     ours = [w for w in caught if issubclass(w.category, build.NativeBuildWarning)]
-    st = build.native_status()["frame_cpu"]
-    print(json.dumps(dict(rel=rel, warnings=len(ours), built=st["built"], reason=st["reason"],
-                          available=native.native_frame_available("cpu", torch.float64))))
+    st = build.native_status()
+    print(json.dumps(dict(rel=rel, warnings=len(ours), built=st["frame_cpu"]["built"] or st["collide_cpu"]["built"],
+                          reason=st["frame_cpu"]["reason"],
+                          available=native.native_frame_available("cpu", torch.float64)
+                          or native.native_collisions_available("cpu", torch.float64),
+                          collide_same=bool(torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])))))
     """
 )
 
 
 def test_fallback_without_native(tmp_path):
-    """AMS_TORCH_NATIVE=0: the entry point gives the torch path (no build, one warning)."""
+    """AMS_TORCH_NATIVE=0: both entry points (frame and collisions) give the torch path, nothing is
+    built, one warning."""
     env = dict(os.environ, AMS_TORCH_CACHE=str(tmp_path / "cache"), PYTHONPATH=str(REPO))
     proc = subprocess.run([sys.executable, "-c", _FALLBACK_SCRIPT.format(tests=str(REPO / "tests"))], env=env,
                           capture_output=True, text=True, timeout=300, check=False)
     assert proc.returncode == 0, proc.stderr[-4000:]
     out = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert out["rel"] <= 1e-15, out
+    assert out["rel"] <= 1e-15 and out["collide_same"], out
     assert not out["built"] and not out["available"] and "AMS_TORCH_NATIVE" in out["reason"], out
     assert out["warnings"] == 1, out
     assert not (tmp_path / "cache").exists() or not any((tmp_path / "cache").iterdir())
