@@ -358,13 +358,29 @@ AMS_HD void rotate_normal(const Prepared<T>& c, const V nl[3], V out[3]) {
   for (int r = 0; r < 3; ++r) out[r] = nl[0] * c.R[3 * r] + nl[1] * c.R[3 * r + 1] + nl[2] * c.R[3 * r + 2];
 }
 
-// One collider's response on one particle (collide's loop body); x, v updated in place.
+// Whether any lane of a mask is set (a comparison of scalars gives an integer, of vectors an
+// integer vector).
+template <class M>
+AMS_HD bool any_lane(const M& m) {
+  if constexpr (std::is_integral<M>::value) {
+    return m != 0;
+  } else {
+    for (int l = 0; l < int(sizeof(M) / sizeof(m[0])); ++l)
+      if (m[l]) return true;
+    return false;
+  }
+}
+
+// One collider's response on one particle (collide's loop body); x, v updated in place. The
+// torch definition computes the response and the push-out everywhere and keeps them where the
+// particle is inside; here they are skipped when no lane is inside (the same values are kept).
 template <class V, class T, class M>
 AMS_HD void respond(const Prepared<T>& c, T dt, const M& free, V x[3], V v[3]) {
   V local[3], nl[3], n[3], sigma;
   to_local(c, x, local);
   distance_and_normal<V, T>(c, local, sigma, nl);
   const auto inside = (sigma < T(0)) & free;
+  if (!any_lane(inside)) return;
   rotate_normal(c, nl, n);
   V vc[3];
   const V zero = splat<V, T>(T(0));
