@@ -13,7 +13,7 @@ import torch
 from ams_torch.geometry.pose import Pose, axis_angle_to_matrix
 from ams_torch.grooms.simple import curly_strand, sphere_groom, wisp
 
-__all__ = ["sphere_groom", "curly_strand", "wisp", "shake_poses", "shape_deviation"]
+__all__ = ["sphere_groom", "curly_strand", "wisp", "shake_poses", "shape_deviation", "at_material_points"]
 
 
 def shake_poses(frames: int, dt: float, amplitude: float = 0.6, frequency: float = 1.5,
@@ -55,3 +55,25 @@ def shape_deviation(x: torch.Tensor, rest: torch.Tensor, align: bool = False) ->
     diag = torch.cat((diag[..., :2], d[..., None]), -1)
     r = u @ torch.diag_embed(diag) @ vt
     return (xc @ r - rc).norm(dim=-1).mean(-1)
+
+
+def at_material_points(rest: torch.Tensor, x: torch.Tensor, points: int = 33) -> torch.Tensor:
+    """Positions of x at fixed material points: the rest arc-length fractions k / (points − 1).
+
+    rest: (S, N, 3) m, the rest shape that defines arc length; x: (..., S, N, 3) m, a simulated
+    state of that groom. Each material point is interpolated linearly along the simulated
+    polyline between the two particles whose rest arc lengths bracket it, so grooms of
+    different N can be compared point for point (errors in N are measured this way, not by
+    particle index). Returns (..., S, points, 3) m.
+    """
+    seg = (rest[:, 1:] - rest[:, :-1]).norm(dim=-1)
+    arc = torch.nn.functional.pad(seg.cumsum(-1), (1, 0))
+    arc = arc / arc[:, -1:]
+    u = torch.linspace(0, 1, points, dtype=rest.dtype, device=rest.device).expand(rest.shape[0], points).contiguous()
+    idx = torch.searchsorted(arc.contiguous(), u).clamp(1, rest.shape[1] - 1)  # (S, points)
+    a0, a1 = arc.gather(1, idx - 1), arc.gather(1, idx)
+    t = ((u - a0) / (a1 - a0)).clamp(0, 1)[..., None]
+    lead = x.shape[:-3]
+    gather = lambda i: torch.gather(x, -2, i[..., None].expand(lead + i.shape + (3,)))  # noqa: E731
+    x0, x1 = gather(idx - 1), gather(idx)
+    return x0 + t.to(x.dtype) * (x1 - x0)

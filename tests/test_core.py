@@ -5,6 +5,7 @@ import pytest
 import torch
 
 import ams_torch as at
+from ams_torch.sim.model import coefficients
 from ams_torch.sim.inextensibility import max_stretch
 from ams_torch.testing import curly_strand, shake_poses, sphere_groom, wisp
 
@@ -52,7 +53,7 @@ def test_ghosts_sit_above_particles_by_weight_over_stiffness():
     sim = at.Simulator(rest, p, dtype=F64)
     s = sim.initial_state()
     offset = s.ghosts() - s.x
-    expected = p.particle_mass * 9.81 / p.integrity_stiffness
+    expected = 9.81 / p.integrity_rate  # m g / κ_I with κ_I = ω_I² m
     torch.testing.assert_close(offset[..., 1], torch.full_like(offset[..., 1], expected))
     torch.testing.assert_close(offset[..., [0, 2]], torch.zeros_like(offset[..., [0, 2]]))
 
@@ -60,7 +61,7 @@ def test_ghosts_sit_above_particles_by_weight_over_stiffness():
 def test_sag_free_without_integrity_warns_and_applies_no_offset():
     rest = curly_strand(particles=8)
     with pytest.warns(UserWarning, match="sag-free"):
-        sim = at.Simulator(rest, at.Params(integrity_stiffness=0.0, sag_free=True), dtype=F64)
+        sim = at.Simulator(rest, at.Params(integrity_rate=0.0, sag_free=True), dtype=F64)
     s = sim.initial_state()
     assert torch.equal(s.ghost_rest, sim.model.rest_positions)
 
@@ -93,19 +94,20 @@ def test_pose_without_velocity_gets_velocity_from_motion():
 
 # ---------------------------------------------------------------------------------- energy
 def total_energy(sim, s):
-    """Kinetic + spring + integrity + angular (couple) potential energy, J."""
-    m, p = sim.model, sim.params
-    e = 0.5 * (m.particle_mass * (s.v * s.v).sum(-1)).sum()
-    for k, scale in ((1, 1.0), (2, p.bend_scale), (3, p.torsion_scale)):
+    """Kinetic + spring + integrity + angular (couple) potential energy, J (per-term coefficients)."""
+    m = sim.model
+    c = coefficients(m)
+    e = 0.5 * (c.mass * (s.v * s.v).sum(-1)).sum()
+    for k, kappa in ((1, c.edge), (2, c.bend), (3, c.torsion)):
         length = (s.x[:, k:] - s.x[:, :-k]).norm(dim=-1)
-        e = e + 0.5 * p.stretch_stiffness * scale * ((length - m.rest_lengths[k - 1]) ** 2).sum()
+        e = e + 0.5 * (kappa * (length - m.rest_lengths[k - 1]) ** 2).sum()
     y = s.ghosts()
-    e = e + 0.5 * p.integrity_stiffness * ((y - s.x) ** 2).sum()
+    e = e + 0.5 * (c.integrity * ((y - s.x) ** 2).sum(-1)).sum()
     ed = s.x[:, 1:] - s.x[:, :-1]
     g = y[:, 1:] - y[:, :-1]
     cos = (ed * g).sum(-1) / (ed.norm(dim=-1) * g.norm(dim=-1))
     theta = torch.acos(cos.clamp(-1, 1))
-    e = e + 0.5 * p.angular_stiffness * (ed.norm(dim=-1) * theta ** 2).sum()
+    e = e + 0.5 * (c.angular * ed.norm(dim=-1) * theta ** 2).sum()
     return float(e)
 
 
@@ -133,7 +135,8 @@ def _step_energy_gains(geometric: bool, frames: int = 120) -> float:
     """Largest one-step relative energy change of a wisp started 20 % stretched with transverse
     velocities (no gravity, drag or inextensibility), float64."""
     rest = wisp(8, 16)
-    p = at.Params(gravity=(0.0, 0.0, 0.0), drag=0.0, inextensibility=False, geometric_stiffness=geometric)
+    p = at.Params(material="per_particle", gravity=(0.0, 0.0, 0.0), drag=0.0, inextensibility=False,
+                  geometric_stiffness=geometric)
     sim = at.Simulator(rest, p, dtype=F64)
     s = sim.initial_state()
     root = s.x[:, :1]
@@ -168,7 +171,7 @@ def test_extremes_stay_finite_and_inextensible(stiffness_ratio, dt):
     """κ_L/m from 1e2 to 1e8 s⁻² (κ_L = 1e-4 … 1e2 N/m at the default 1e-6 kg), M = 1, under a
     translational shake whose peak head acceleration is 0, 10 g and 50 g."""
     rest = sphere_groom(12, 16, seed=4)
-    p = at.Params(stretch_stiffness=stiffness_ratio * 1e-6, dt=dt, substeps=1)
+    p = at.Params(material="per_particle", stretch_stiffness=stiffness_ratio * 1e-6, dt=dt, substeps=1)
     sim = at.Simulator(rest, p)
     edge = sim.model.edge_rest_length
     frames = max(6, int(round(0.25 / dt)))
@@ -266,18 +269,35 @@ def test_degenerate_segment_named():
     ("integrity_stiffness", -1.0, "integrity_stiffness must be non-negative"),
     ("angular_stiffness", float("nan"), "angular_stiffness must be finite"),
     ("num_pinned", -1, "num_pinned"),
+    ("linear_density", 0.0, "linear_density must be positive"),
+    ("stretch_rigidity", -1.0, "stretch_rigidity must be non-negative"),
+    ("integrity_rate", -1.0, "integrity_rate must be non-negative"),
+    ("root_length", -0.01, "root_length must be a non-negative number"),
+    ("integrity_length", 0.0, "integrity_length must be a positive number"),
+    ("material", "per_strand", "material must be 'per_particle' or 'per_length'"),
 ])
 def test_bad_params_named(field, value, match):
+    from ams_torch.sim.params import MATERIAL_ONLY
+
+    material = "per_particle" if field in MATERIAL_ONLY["per_particle"] else "per_length"
+    kw = {} if field == "material" else {"material": material}
     with pytest.raises(ValueError, match=match):
-        at.Params(**{field: value})
+        at.Params(**kw, **{field: value})
     with pytest.raises(ValueError, match=match):
-        at.Params().replace(**{field: value})
+        at.Params(**kw).replace(**{field: value})
+
+
+def test_a_field_of_the_other_material_is_refused():
+    with pytest.raises(ValueError, match="Params.particle_mass is a field of the per_particle material"):
+        at.Params(particle_mass=2e-6)
+    with pytest.raises(ValueError, match="Params.linear_density is a field of the per_length material"):
+        at.Params(material="per_particle", linear_density=1e-3)
 
 
 def test_too_many_pinned_and_bad_state_shape():
     rest = sphere_groom(3, 6)
     with pytest.raises(ValueError, match="num_pinned"):
-        at.Simulator(rest, at.Params(num_pinned=6))
+        at.Simulator(rest, at.Params(material="per_particle", num_pinned=6))
     sim = at.Simulator(rest, at.Params())
     s = sim.initial_state()
     with pytest.raises(ValueError, match="state.x/v must have shape"):
@@ -301,6 +321,6 @@ def test_divergence_guard_names_frame_and_strands():
 
 def test_ms_params_are_plain_mass_spring():
     p = at.Params().ms()
-    assert p.integrity_stiffness == 0 and p.angular_stiffness == 0 and not p.sag_free
+    assert p.integrity_rate == 0 and p.angular_rigidity == 0 and not p.sag_free
     with pytest.raises(ValueError, match="unknown Params field"):
         at.Params().replace(stiffness=1.0)

@@ -67,7 +67,7 @@ def stiff_strand_system(strands=8, n=32, seed=0):
     g = torch.Generator().manual_seed(seed)
     s = torch.linspace(0, 0.3, n, dtype=torch.float64)
     rest = torch.stack((s, 0.01 * torch.sin(40 * s), 0.01 * torch.cos(30 * s)), -1).expand(strands, n, 3)
-    params = at.Params(stretch_stiffness=1e8, particle_mass=1e-6, num_pinned=0, sag_free=False)
+    params = at.Params(material="per_particle", stretch_stiffness=1e8, particle_mass=1e-6, num_pinned=0, sag_free=False)
     sim = at.Simulator(rest, params, dtype=torch.float64)
     x = rest + 1e-3 * torch.randn(strands, n, 3, generator=g, dtype=torch.float64)
     v = torch.randn(strands, n, 3, generator=g, dtype=torch.float64)

@@ -130,21 +130,21 @@ def test_groom_at_rest_with_pose_only_in_initial_state_does_not_drift(law, capsy
 
 
 def test_gradcheck_of_a_rollout_against_finite_differences():
-    """Float64 gradcheck of a 3-frame rollout with respect to κ_I, drag and x₀ (the sag-free
-    offset depends on κ_I: gradients pass through initial_state too)."""
+    """Float64 gradcheck of a 3-frame rollout with respect to the integrity rate (κ_I = ω_I² m), drag
+    and x₀ (the sag-free offset depends on κ_I: gradients pass through initial_state too)."""
     rest = curly_strand(particles=6, dtype=F64).expand(2, 6, 3).clone()
     rest[1, :, 2] += 0.01
     poses = shake_poses(3, 1 / 60, amplitude=0.5, dtype=F64)
 
     def rollout(kappa, drag, x0):
-        sim = at.Simulator(rest, at.Params(integrity_stiffness=kappa, drag=drag), dtype=F64)
+        sim = at.Simulator(rest, at.Params(integrity_rate=kappa, drag=drag), dtype=F64)
         s = sim.initial_state()
         s = s.replace(x=s.x + x0)
         for pose in poses:
             s = sim.step(s, pose)
         return s.x
 
-    kappa = torch.tensor(1e-4, dtype=F64, requires_grad=True)
+    kappa = torch.tensor(1e2, dtype=F64, requires_grad=True)  # the integrity rate ω_I², s⁻²
     drag = torch.tensor(1.5, dtype=F64, requires_grad=True)
     x0 = (1e-3 * torch.randn(rest.shape, generator=torch.Generator().manual_seed(0), dtype=F64)).requires_grad_()
     assert torch.autograd.gradcheck(rollout, (kappa, drag, x0), eps=1e-7, atol=1e-6, rtol=1e-4)
@@ -165,8 +165,8 @@ def test_small_swing_pendulum_period_of_a_stiff_strand(capsys):
                             dtype=F64)
 
     rest = (pts @ rot(-hang).T @ rot(amp).T)[None]
-    p = at.Params(stretch_stiffness=1e2, integrity_stiffness=0.0, angular_stiffness=0.0, drag=0.0, num_pinned=1,
-                  sag_free=False, dt=1 / 60, substeps=2)
+    p = at.Params(material="per_particle", stretch_stiffness=1e2, integrity_stiffness=0.0, angular_stiffness=0.0,
+                  drag=0.0, num_pinned=1, sag_free=False, dt=1 / 60, substeps=2)
     sim = at.Simulator(rest, p, dtype=F64)
     s = sim.initial_state()
     xs = []
@@ -202,11 +202,11 @@ def test_double_moves_the_whole_model():
 
 def test_state_dict_round_trip_reproduces_a_run_bit_for_bit():
     rest = sphere_groom(8, 10, seed=4)
-    params = at.Params(integrity_stiffness=2e-4, drag=1.0)
+    params = at.Params(integrity_rate=200.0, drag=1.0)
     a = at.Simulator(rest, params, learnable=("drag",))
     with torch.no_grad():
         a.model.drag.mul_(0.5)
-    b = at.Simulator(rest, params.replace(integrity_stiffness=5e-4, particle_mass=2e-6), learnable=("drag",))
+    b = at.Simulator(rest, params.replace(integrity_rate=500.0, linear_density=2e-4), learnable=("drag",))
     assert len(a.state_dict()) > 10
     b.load_state_dict(a.state_dict())
     poses = shake_poses(10, params.dt)
@@ -221,16 +221,16 @@ def test_learnable_parameters_get_gradients_and_fit():
     toward a target made with other values."""
     rest = sphere_groom(6, 8, seed=5, dtype=F64)
     poses = shake_poses(8, 1 / 60, amplitude=0.8, dtype=F64)
-    truth = at.Simulator(rest, at.Params(integrity_stiffness=3e-4, drag=3.0), dtype=F64)
+    truth = at.Simulator(rest, at.Params(integrity_rate=300.0, drag=3.0), dtype=F64)
     s = truth.initial_state()
     for pose in poses:
         s = truth.step(s, pose)
     target = s.x.detach()
-    sim = at.Simulator(rest, at.Params(integrity_stiffness=1e-4, drag=1.5), dtype=F64,
-                       learnable=("integrity_stiffness", "drag"))
+    sim = at.Simulator(rest, at.Params(integrity_rate=100.0, drag=1.5), dtype=F64,
+                       learnable=("integrity_rate", "drag"))
     names = {n for n, _ in sim.named_parameters()}
-    assert names == {"model.integrity_stiffness", "model.drag"}
-    opt = torch.optim.Adam([{"params": [sim.model.integrity_stiffness], "lr": 2e-5},
+    assert names == {"model.integrity_rate", "model.drag"}
+    opt = torch.optim.Adam([{"params": [sim.model.integrity_rate], "lr": 20.0},
                             {"params": [sim.model.drag], "lr": 0.2}])
     losses = []
     for _ in range(25):
@@ -243,7 +243,7 @@ def test_learnable_parameters_get_gradients_and_fit():
         opt.step()
         losses.append(float(loss.detach()))
     assert losses[-1] < 0.2 * losses[0]
-    assert abs(float(sim.model.integrity_stiffness) - 3e-4) < abs(1e-4 - 3e-4)
+    assert abs(float(sim.model.integrity_rate.detach()) - 300.0) < abs(100.0 - 300.0)
 
 
 # ----------------------------------------------------------------------- inputs at the boundary

@@ -22,17 +22,34 @@ import torch
 
 from ams_torch.sim.params import Params
 
-__all__ = ["Model", "Coefficients", "coefficients", "check_rest_positions", "MIN_PARTICLES", "MATERIAL_FIELDS"]
+__all__ = ["Model", "Coefficients", "coefficients", "check_rest_positions", "MIN_PARTICLES", "MATERIAL_FIELDS",
+           "sag_free_offset", "pinned_counts"]
 
 MIN_PARTICLES = 4  # torsion springs couple i and i+3
 MIN_SEGMENT = 1e-9  # m; shorter rest segments are degenerate
 
-#: Params fields that become model coefficients, with the term shape they expand to
-#: ("particle": (S, N); "edge"/"bend"/"torsion": (S, N−k); "segment": (S, N−1); "scalar": ()).
+#: Params fields that become model coefficients, per material, with the shape each broadcasts
+#: to ("particle": (S, N); "edge"/"bend"/"torsion": (S, N−k); "segment": (S, N−1); "scalar": ()).
 MATERIAL_FIELDS = {
-    "particle_mass": "particle", "drag": "particle", "stretch_stiffness": "edge", "bend_scale": "bend",
-    "torsion_scale": "torsion", "integrity_stiffness": "particle", "angular_stiffness": "segment",
-    "integrity_transition": "scalar", "integrity_break": "scalar", "integrity_soft_ratio": "scalar",
+    "per_particle": {
+        "particle_mass": "particle", "drag": "particle", "stretch_stiffness": "edge", "bend_scale": "bend",
+        "torsion_scale": "torsion", "integrity_stiffness": "particle", "angular_stiffness": "segment",
+        "integrity_transition": "scalar", "integrity_break": "scalar", "integrity_soft_ratio": "scalar"},
+    "per_length": {
+        "linear_density": "particle", "drag": "particle", "stretch_rigidity": "edge", "bend_rigidity": "bend",
+        "torsion_rigidity": "torsion", "integrity_rate": "particle", "angular_rigidity": "segment",
+        "integrity_transition": "scalar", "integrity_break": "scalar", "integrity_soft_ratio": "scalar"},
+}
+
+#: Coefficient terms and the fields each depends on (see :func:`coefficients`).
+_TERM_FIELDS = {
+    "per_particle": {"mass": ("particle_mass",), "edge": ("stretch_stiffness",),
+                     "bend": ("stretch_stiffness", "bend_scale"), "torsion": ("stretch_stiffness", "torsion_scale"),
+                     "integrity": ("integrity_stiffness",), "angular": ("angular_stiffness",),
+                     "drag": ("drag", "particle_mass")},
+    "per_length": {"mass": ("linear_density",), "edge": ("stretch_rigidity",),
+                   "bend": ("bend_rigidity", "stretch_rigidity"), "torsion": ("torsion_rigidity", "stretch_rigidity"), "integrity": ("integrity_rate", "linear_density"),
+                   "angular": ("angular_rigidity",), "drag": ("drag", "linear_density")},
 }
 
 
@@ -132,16 +149,16 @@ class Model(torch.nn.Module):
         super().__init__()
         params.validate()
         learnable = tuple(learnable)
-        unknown = [f for f in learnable if f not in MATERIAL_FIELDS]
+        fields = MATERIAL_FIELDS[params.material]
+        unknown = [f for f in learnable if f not in fields]
         if unknown:
-            raise ValueError(f"learnable: {unknown} are not material fields of Params; choose from "
-                             f"{sorted(MATERIAL_FIELDS)}")
+            raise ValueError(f"learnable: {unknown} are not material fields of the {params.material} Params; "
+                             f"choose from {sorted(fields)}")
         x = check_rest_positions(rest_positions).to(device=device, dtype=dtype)
         s, n, _ = x.shape
-        if params.num_pinned >= n:
-            raise ValueError(f"Params.num_pinned = {params.num_pinned} must be smaller than the particles per strand "
-                             f"({n})")
         self.num_strands, self.num_particles = s, n
+        self.material = params.material
+        self.stiffness_cap = float(params.stiffness_cap)
         self.learnable = learnable
         self.register_buffer("rest_positions", x)
         for k, name in ((1, "edge"), (2, "bend"), (3, "torsion")):
@@ -150,15 +167,29 @@ class Model(torch.nn.Module):
         total = torch.nn.functional.pad(e, (0, 1)) + torch.nn.functional.pad(e, (1, 0))
         count = torch.full((n,), 2.0, dtype=dtype, device=x.device)
         count[0] = count[-1] = 1.0
-        self.register_buffer("segment_length", total / count)
-        counts = torch.full((s,), params.num_pinned, dtype=torch.int64, device=x.device)
+        if params.material == "per_length":  # the non-Hookean elongation's length unit (SPEC §7, §13)
+            self.register_buffer("segment_length", torch.full((s, n), params.integrity_length, dtype=dtype,
+                                                              device=x.device))
+            self.register_buffer("length_share", total / 2)  # each particle's share of rest length, m
+            self.register_buffer("inverse_edge", 1.0 / e)  # 1/l_i
+            for k, name in ((2, "bend"), (3, "torsion")):  # 1/ℓ⁵, ℓ = the spring's rest length over its span
+                self.register_buffer(f"inverse_{name}5", (getattr(self, f"{name}_rest_length") / k) ** -5)
+        else:
+            self.register_buffer("segment_length", total / count)
+        counts = pinned_counts(params, x)
+        if int(counts.max()) >= n:
+            raise ValueError(f"{int(counts.max())} pinned particles (Params.num_pinned / root_length) must be fewer "
+                             f"than the particles per strand ({n})")
         self.register_buffer("num_pinned", counts)
-        self.has_pinned = params.num_pinned > 0
+        self.has_pinned = bool(int(counts.max()) > 0)
         self.register_buffer("pinned", torch.arange(n, device=x.device)[None, :] < counts[:, None])
         self.register_buffer("gravity", torch.as_tensor(params.gravity, dtype=dtype, device=x.device))
-        self._raw = {}  # field -> factor buffer name, for coefficients computed per call
-        for field, term in MATERIAL_FIELDS.items():
-            self._add_coefficient(field, term, getattr(params, field), field in learnable)
+        self._raw = {}  # field -> the shape it broadcasts to, for raw (learnable / grad) fields
+        for field, term in fields.items():
+            self._add_field(field, term, getattr(params, field), field in learnable)
+        self._fixed_terms = [t for t, deps in _TERM_FIELDS[self.material].items()
+                             if not any(d in self._raw for d in deps)]
+        self._build_fixed_terms()
 
     # -- construction ----------------------------------------------------------------------
     def _term_shape(self, term: str) -> tuple:
@@ -166,7 +197,7 @@ class Model(torch.nn.Module):
         return {"particle": (s, n), "edge": (s, n - 1), "bend": (s, n - 2), "torsion": (s, n - 3),
                 "segment": (s, n - 1), "scalar": ()}[term]
 
-    def _add_coefficient(self, field: str, term: str, value, learnable: bool) -> None:
+    def _add_field(self, field: str, term: str, value, learnable: bool) -> None:
         dev, dtype = self.rest_positions.device, self.rest_positions.dtype
         shape = self._term_shape(term)
         raw = torch.as_tensor(value, device=dev, dtype=dtype) if not isinstance(value, torch.Tensor) \
@@ -184,6 +215,22 @@ class Model(torch.nn.Module):
             self._raw[field] = shape
         else:
             self.register_buffer(field, raw.expand(shape).clone())
+
+    def _build_fixed_terms(self) -> None:
+        """Coefficient terms that depend on no raw field are computed once, here, as buffers
+        (``coefficient_<term>``), so a step of a fixed material computes none of them."""
+        terms = _compute_terms(self, set(self._fixed_terms))
+        for t in self._fixed_terms:
+            self.register_buffer(f"coefficient_{t}", terms[t].contiguous(), persistent=False)
+
+    def _apply(self, fn, *args, **kwargs):
+        out = super()._apply(fn, *args, **kwargs)
+        self._build_fixed_terms()  # recomputed in the new dtype from the converted fields
+        return out
+
+    def _load_from_state_dict(self, *args, **kwargs):
+        super()._load_from_state_dict(*args, **kwargs)
+        self._build_fixed_terms()
 
     # -- sizes and views -------------------------------------------------------------------
     @property
@@ -203,30 +250,81 @@ class Model(torch.nn.Module):
         return f"strands={self.num_strands}, particles={self.num_particles}, learnable={self.learnable}"
 
 
-def coefficients(model: Model) -> Coefficients:
-    """The model's per-term material coefficients (see :class:`Coefficients`).
-
-    Expanded buffers are returned as they are; learnable or grad-carrying raw values are
-    broadcast here, so their gradients come back to them. Bending and torsion stiffnesses are
-    the edge stiffness times the bend/torsion scale on each pair, and the drag coefficient is
-    the drag rate times the particle mass.
-    """
+def _compute_terms(model: Model, terms: set) -> dict:
+    """The requested coefficient terms from the fields (buffers or raw values) and the geometry."""
     raw = model._raw
 
     def full(field: str) -> torch.Tensor:
         v = getattr(model, field)
         return v.expand(raw[field]) if field in raw else v
 
-    mass = full("particle_mass")
-    edge = full("stretch_stiffness")
-    # the bending/torsion pair (i, i+k) uses the stretch stiffness of its first edge (uniform
-    # per strand in the per-particle material) times its scale
-    bend = edge[..., :-1] * full("bend_scale")
-    torsion = edge[..., :-2] * full("torsion_scale")
-    return Coefficients(mass=mass, drag=full("drag") * mass, edge=edge, bend=bend, torsion=torsion,
-                        integrity=full("integrity_stiffness"), angular=full("angular_stiffness"),
-                        transition=full("integrity_transition"), breaking=full("integrity_break"),
-                        soft_ratio=full("integrity_soft_ratio"))
+    out = {}
+    if model.material == "per_particle":
+        mass = full("particle_mass")
+        edge = full("stretch_stiffness")
+        out["mass"], out["edge"] = mass, edge
+        # the pair (i, i+k) uses the stretch stiffness of its first edge times its scale
+        if "bend" in terms:
+            out["bend"] = edge[..., :-1] * full("bend_scale")
+        if "torsion" in terms:
+            out["torsion"] = edge[..., :-2] * full("torsion_scale")
+        out["integrity"], out["angular"] = full("integrity_stiffness"), full("angular_stiffness")
+    else:
+        mass = full("linear_density") * model.length_share
+        out["mass"] = mass
+        if "edge" in terms:
+            out["edge"] = full("stretch_rigidity") * model.inverse_edge
+        cap = model.stiffness_cap * full("stretch_rigidity") * model.inverse_edge  # cap × κ_L per edge
+        if "bend" in terms:
+            out["bend"] = torch.minimum(full("bend_rigidity") * model.inverse_bend5, cap[..., :-1])
+        if "torsion" in terms:
+            out["torsion"] = torch.minimum(full("torsion_rigidity") * model.inverse_torsion5, cap[..., :-2])
+        if "integrity" in terms:
+            out["integrity"] = full("integrity_rate") * mass
+        if "angular" in terms:
+            out["angular"] = full("angular_rigidity").expand(model.edge_rest_length.shape)
+    if "drag" in terms:
+        out["drag"] = full("drag") * mass
+    return out
+
+
+def coefficients(model: Model) -> Coefficients:
+    """The model's per-term material coefficients (see :class:`Coefficients`).
+
+    Terms that depend only on fixed fields are buffers computed when the model was built (and
+    after ``.to()`` / ``load_state_dict``); terms of learnable or grad-carrying fields are
+    computed here, so gradients come back to those fields. Per particle: bending/torsion are
+    the edge stiffness times their scale, drag the rate times the mass. Per length (SPEC §13):
+    m_i = λ × share, κ_L = EA/l, κ_bend = B_b/ℓ⁵, κ_torsion = B_t/ℓ⁵, κ_I = ω_I² m, κ_α = A (the angular
+    rigidity: the same on every segment, since the potential ½ κ_α |e| θ² is per length already).
+    """
+    fixed = model._fixed_terms
+    terms = {t: getattr(model, f"coefficient_{t}") for t in fixed}
+    missing = set(_TERM_FIELDS[model.material]) - set(fixed)
+    if missing:
+        terms.update({k: v for k, v in _compute_terms(model, missing).items() if k in missing})
+    raw = model._raw
+
+    def scalar(field):
+        v = getattr(model, field)
+        return v.expand(raw[field]) if field in raw else v
+
+    return Coefficients(mass=terms["mass"], drag=terms["drag"], edge=terms["edge"], bend=terms["bend"],
+                        torsion=terms["torsion"], integrity=terms["integrity"], angular=terms["angular"],
+                        transition=scalar("integrity_transition"), breaking=scalar("integrity_break"),
+                        soft_ratio=scalar("integrity_soft_ratio"))
+
+
+def pinned_counts(params: Params, rest: torch.Tensor) -> torch.Tensor:
+    """(S,) int64: each strand's pinned prefix. Per particle: ``num_pinned``. Per length: every
+    particle within ``root_length`` of rest arc length from the root, at least 2 (the root and
+    its direction), so the clamped root does not shrink as N grows (SPEC §13)."""
+    s, n = rest.shape[:2]
+    if params.material == "per_particle":
+        return torch.full((s,), params.num_pinned, dtype=torch.int64, device=rest.device)
+    arc = torch.nn.functional.pad((rest[:, 1:] - rest[:, :-1]).norm(dim=-1).cumsum(-1), (1, 0))
+    within = (arc <= params.root_length * (1 + 1e-9) + 1e-12).sum(-1)
+    return within.clamp_min(2).to(torch.int64)
 
 
 def _all_zero(v) -> bool:
@@ -237,7 +335,9 @@ def _all_zero(v) -> bool:
 
 def warn_if_no_sag_offset(params: Params) -> None:
     """SPEC §5: with κ_I = 0 the sag-free offset m g / κ_I is undefined: say so (once per build)."""
-    if params.sag_free and _all_zero(params.integrity_stiffness):
+    from ams_torch.sim.params import INTEGRITY_FIELD
+
+    if params.sag_free and _all_zero(getattr(params, INTEGRITY_FIELD[params.material])):
         warnings.warn("Params.sag_free is on but integrity_stiffness is 0: the sag-free offset (m g / κ_I) is "
                       "undefined, so no offset is applied", stacklevel=3)
 

@@ -26,6 +26,23 @@ PARAM_PRESETS = {
 
 Scalar = Union[float, torch.Tensor]
 
+#: the fields only one material reads (``Params.validate`` refuses a changed field of the other)
+MATERIAL_ONLY = {
+    "per_particle": ("particle_mass", "stretch_stiffness", "bend_scale", "torsion_scale", "integrity_stiffness",
+                     "angular_stiffness", "num_pinned"),
+    "per_length": ("linear_density", "stretch_rigidity", "bend_rigidity", "torsion_rigidity", "integrity_rate",
+                   "angular_rigidity", "stiffness_cap", "root_length", "integrity_length"),
+}
+#: the fields that hold κ_I and κ_α in each material
+INTEGRITY_FIELD = {"per_particle": "integrity_stiffness", "per_length": "integrity_rate"}
+ANGULAR_FIELD = {"per_particle": "angular_stiffness", "per_length": "angular_rigidity"}
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, torch.Tensor) or isinstance(b, torch.Tensor):
+        return False
+    return a == b
+
 
 def _min_value(v) -> float:
     if isinstance(v, torch.Tensor):
@@ -43,11 +60,24 @@ def _is_finite(v) -> bool:
 class Params:
     """Parameters of the AMS model, SI units throughout (m, kg, s, N).
 
-    Library defaults use a particle mass of 1e-6 kg (one simulated strand stands for a
-    small wisp) and the stiffness-to-mass ratios of the paper's Table 1 defaults
-    (κ_L/m = 1e6 s⁻², κ_I/m = 1e2 s⁻², κ_α/m = 1e2 s⁻² rad⁻¹), so the dynamics match the
-    paper's unit-mass values. :meth:`paper` gives the paper's own units (mass 1).
-    Stiffness-type fields may be tensors (e.g. requiring grad, or per strand (S, 1)).
+    Two materials (SPEC §13; derivation and conversions in docs/material.md):
+
+    - ``material="per_particle"``: the paper's constants, per particle and per spring
+      (``particle_mass``, ``stretch_stiffness``, ``bend_scale``, ``torsion_scale``,
+      ``integrity_stiffness``, ``angular_stiffness``, ``num_pinned``). Refining a strand from N to
+      2N particles with them makes a different material (heavier, softer in stretch).
+    - ``material="per_length"``: a parametrisation per unit length, converted per segment when
+      the model is built (``linear_density``, ``stretch_rigidity``, ``bend_rigidity``,
+      ``torsion_rigidity``, ``integrity_rate``, ``angular_rigidity``, ``root_length``,
+      ``integrity_length``), so that N is a resolution knob: the simulated material does not
+      change with it.
+
+    The per-particle defaults use a particle mass of 1e-6 kg (one simulated strand stands for
+    a small wisp) and the stiffness-to-mass ratios of the paper's Table 1 defaults
+    (κ_L/m = 1e6 s⁻², κ_I/m = 1e2 s⁻², κ_α/m = 1e2 s⁻² rad⁻¹); the per-length defaults are the same
+    material for 8 mm segments (32 particles on a 25 cm strand). :meth:`paper` gives the paper's
+    own units (mass 1, per particle). Stiffness-type fields may be tensors (requiring grad, or
+    per strand (S, 1)).
 
     Fields:
         stretch_stiffness: κ_L, N/m, stiffness of the edge springs (pairs i, i+1).
@@ -65,7 +95,31 @@ class Params:
             in (0, 1]; default 0.25.
         angular_stiffness: κ_α, N/rad, angular spring toward the ghost segment (SPEC §3).
         particle_mass: kg per particle.
-        drag: linear drag rate γ/m, 1/s (force −drag·m·v, world air at rest).
+        drag: linear drag rate γ/m, 1/s (force −drag·m·v, world air at rest); both materials.
+        material: "per_particle" or "per_length" (see above).
+        linear_density: λ, kg/m: m_i = λ × the particle's share of rest length (half of each
+            adjacent edge).
+        stretch_rigidity: EA, N: κ_L,i = EA / l_i for edge i.
+        bend_rigidity, torsion_rigidity: N·m⁴, rigidity proxies B_b, B_t of the springs
+            (i, i+2) and (i, i+3): κ_i = B / ℓ_i⁵ with ℓ_i the spring's rest length over its span
+            (2 or 3 edges), which keeps the small-deflection bending stiffness per unit length of
+            a curved rest shape, (k³/12)² κ ℓ⁵ c² for span k and curvature c, independent of N.
+        integrity_rate: ω_I², s⁻²: κ_I,i = ω_I² m_i (a rate per unit mass).
+        angular_rigidity: A, N (= N·m per rad² per metre): κ_α,i = A on every segment. The angular
+            spring's potential ½ κ_α |e| θ² is already per unit length (|e| = l_i), so a constant
+            κ_α is an N-independent energy density ½ A θ². (The rate-per-mass form κ_α = ω² m l
+            makes that density ∝ l², vanishing as N grows; measured in docs/material.md, it does
+            not converge.)
+        stiffness_cap: per-length material: a bending or torsion spring is never stiffer than this
+            many times the stretch stiffness of its first edge. B / ℓ⁵ grows without bound on short
+            segments (a 2 cm strand of 32 particles would get springs 1e5× its edges: a step float64
+            resolves but float32 does not); with the default rigidities the cap of 1000 binds only
+            on segments shorter than about 1.4 mm (1e2: 2.5 mm).
+        root_length: m, per-length material: pin every particle within this rest arc length of
+            the root (at least two: the root and its direction), instead of ``num_pinned``.
+        integrity_length: m, per-length material: the length unit of the non-Hookean
+            elongation (particle–ghost distance over it) instead of the local segment length,
+            so the curve's transition and breaking points are N-independent.
         dt: frame length, s.
         substeps: M, backward-Euler substeps per frame (Δt' = dt / M).
         gravity: (gx, gy, gz), m/s², world frame (+y is up).
@@ -97,12 +151,22 @@ class Params:
     torsion_scale: Scalar = 1.0
     integrity_stiffness: Scalar = 1e-4
     integrity_model: str = "hookean"
-    integrity_transition: float = 0.5
-    integrity_break: float = 1.0
-    integrity_soft_ratio: float = 0.25
+    integrity_transition: Scalar = 0.5
+    integrity_break: Scalar = 1.0
+    integrity_soft_ratio: Scalar = 0.25
     angular_stiffness: Scalar = 1e-4
     particle_mass: Scalar = 1e-6
     drag: Scalar = 1.5
+    material: str = "per_length"
+    linear_density: Scalar = 1.25e-4
+    stretch_rigidity: Scalar = 8e-3
+    bend_rigidity: Scalar = 3.2768e-11
+    torsion_rigidity: Scalar = 3.2768e-11
+    integrity_rate: Scalar = 1e2
+    angular_rigidity: Scalar = 1e-4
+    stiffness_cap: float = 1e3
+    root_length: float = 0.0
+    integrity_length: float = 8e-3
     dt: float = 1.0 / 60.0
     substeps: int = 1
     gravity: Tuple[float, float, float] = (0.0, -9.81, 0.0)
@@ -123,8 +187,11 @@ class Params:
     # -- validation --------------------------------------------------------------------
     def validate(self) -> "Params":
         """Raise ``ValueError`` naming the first invalid field."""
+        if self.material not in ("per_particle", "per_length"):
+            raise ValueError(f"Params.material must be 'per_particle' or 'per_length'; got {self.material!r}")
         for name in ("stretch_stiffness", "bend_scale", "torsion_scale", "integrity_stiffness",
-                     "angular_stiffness", "drag"):
+                     "angular_stiffness", "drag", "stretch_rigidity", "bend_rigidity", "torsion_rigidity",
+                     "integrity_rate", "angular_rigidity"):
             v = getattr(self, name)
             if not _is_finite(v):
                 raise ValueError(f"Params.{name} must be finite; got {v}")
@@ -132,18 +199,33 @@ class Params:
                 raise ValueError(f"Params.{name} must be non-negative (stiffness/drag); got {v}")
         if not _is_finite(self.particle_mass) or _min_value(self.particle_mass) <= 0:
             raise ValueError(f"Params.particle_mass must be positive (kg); got {self.particle_mass}")
+        if not _is_finite(self.linear_density) or _min_value(self.linear_density) <= 0:
+            raise ValueError(f"Params.linear_density must be positive (kg/m); got {self.linear_density}")
+        for name in ("root_length", "integrity_length", "stiffness_cap"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0 or \
+                    (name != "root_length" and v == 0):
+                raise ValueError(f"Params.{name} must be a {'non-negative' if name == 'root_length' else 'positive'} "
+                                 f"number{'' if name == 'stiffness_cap' else ' of metres'}; got {v!r}")
         if self.integrity_model not in ("hookean", "nonhookean"):
             raise ValueError(f"Params.integrity_model must be 'hookean' or 'nonhookean'; got {self.integrity_model!r}")
+        curve = {}
         for name in ("integrity_transition", "integrity_break", "integrity_soft_ratio"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            if isinstance(v, torch.Tensor):
+                if v.numel() != 1 or not _is_finite(v):
+                    raise ValueError(f"Params.{name} must be one finite number; got {v!r}")
+                curve[name] = float(v.detach())
+            elif isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
                 raise ValueError(f"Params.{name} must be a finite number; got {v!r}")
-        if not self.integrity_transition > 0:
+            else:
+                curve[name] = float(v)
+        if not curve["integrity_transition"] > 0:
             raise ValueError(f"Params.integrity_transition must be positive; got {self.integrity_transition}")
-        if not self.integrity_break > self.integrity_transition:
+        if not curve["integrity_break"] > curve["integrity_transition"]:
             raise ValueError(f"Params.integrity_break must exceed integrity_transition "
                              f"({self.integrity_transition}); got {self.integrity_break}")
-        if not 0.0 < self.integrity_soft_ratio <= 1.0:
+        if not 0.0 < curve["integrity_soft_ratio"] <= 1.0:
             raise ValueError(f"Params.integrity_soft_ratio must lie in (0, 1]; got {self.integrity_soft_ratio}")
         if not (isinstance(self.dt, (int, float)) and math.isfinite(self.dt) and self.dt > 0):
             raise ValueError(f"Params.dt must be a positive number of seconds; got {self.dt}")
@@ -163,6 +245,12 @@ class Params:
             raise ValueError(f"Params.max_relative_speed must be positive (m/s); got {self.max_relative_speed}")
         if self.check_every < 0:
             raise ValueError(f"Params.check_every must be >= 0; got {self.check_every}")
+        other = "per_particle" if self.material == "per_length" else "per_length"
+        for name in MATERIAL_ONLY[other]:
+            if not _same(getattr(self, name), _DEFAULTS[name]):
+                hint = ", ".join(MATERIAL_ONLY[self.material])
+                raise ValueError(f"Params.{name} is a field of the {other} material, but material = {self.material!r} "
+                                 f"ignores it: set material={other!r} to use it, or the {self.material} fields ({hint})")
         return self
 
     # -- variants ----------------------------------------------------------------------
@@ -175,12 +263,47 @@ class Params:
 
     def ms(self) -> "Params":
         """Plain mass-spring (Selle et al.) for comparisons: κ_I = κ_α = 0, no ghost offset."""
-        return self.replace(integrity_stiffness=0.0, angular_stiffness=0.0, sag_free=False)
+        return self.replace(**{INTEGRITY_FIELD[self.material]: 0.0, ANGULAR_FIELD[self.material]: 0.0}, sag_free=False)
+
+    def to_per_length(self, segment_length: float) -> "Params":
+        """The per-length material that equals this per-particle one on a strand of segments of
+        ``segment_length`` metres (docs/material.md): λ = m/l, EA = κ_L l, B = κ_L × scale × l⁵,
+        ω_I² = κ_I/m, A = κ_α, root length (num_pinned − 1) l, integrity length l.
+        Interior particles match exactly; the two end particles carry half a segment's mass in
+        the per-length material. Tensor fields are converted elementwise."""
+        if self.material != "per_particle":
+            raise ValueError("to_per_length converts a per_particle Params")
+        ell = float(segment_length)
+        if not ell > 0:
+            raise ValueError(f"segment_length must be positive (m); got {segment_length!r}")
+        m, k = self.particle_mass, self.stretch_stiffness
+        return replace(self, **{f: _DEFAULTS[f] for f in MATERIAL_ONLY["per_particle"]}).replace(
+            material="per_length", linear_density=m / ell, stretch_rigidity=k * ell,
+                            bend_rigidity=k * self.bend_scale * ell ** 5, torsion_rigidity=k * self.torsion_scale * ell ** 5,
+                            integrity_rate=self.integrity_stiffness / m, angular_rigidity=self.angular_stiffness,
+                            root_length=(self.num_pinned - 1) * ell, integrity_length=ell)
+
+    def to_per_particle(self, segment_length: float) -> "Params":
+        """The per-particle material that equals this per-length one on segments of
+        ``segment_length`` metres (the inverse of :meth:`to_per_length`; the pinned count is the
+        particles within ``root_length``, at least 2)."""
+        if self.material != "per_length":
+            raise ValueError("to_per_particle converts a per_length Params")
+        ell = float(segment_length)
+        if not ell > 0:
+            raise ValueError(f"segment_length must be positive (m); got {segment_length!r}")
+        m = self.linear_density * ell
+        k = self.stretch_rigidity / ell
+        return replace(self, **{f: _DEFAULTS[f] for f in MATERIAL_ONLY["per_length"]}).replace(
+            material="per_particle", particle_mass=m, stretch_stiffness=k,
+                            bend_scale=self.bend_rigidity / (ell ** 5 * k), torsion_scale=self.torsion_rigidity / (ell ** 5 * k),
+                            integrity_stiffness=self.integrity_rate * m, angular_stiffness=self.angular_rigidity,
+                            num_pinned=max(2, 1 + int(math.floor(self.root_length / ell + 1e-9))))
 
     @staticmethod
     def paper(**changes) -> "Params":
         """The paper's units (SPEC §10): particle mass 1, κ_L = 1e6, κ_I = 1e2, κ_α = 1e2."""
-        base = dict(particle_mass=1.0, stretch_stiffness=1e6, integrity_stiffness=1e2,
+        base = dict(material="per_particle", particle_mass=1.0, stretch_stiffness=1e6, integrity_stiffness=1e2,
                     angular_stiffness=1e2, drag=1.5)
         base.update(changes)
         return Params(**base)
@@ -221,3 +344,6 @@ class Params:
         for k, v in asdict(self).items():
             out[k] = v.detach().cpu().tolist() if isinstance(v, torch.Tensor) else (list(v) if isinstance(v, tuple) else v)
         return out
+
+
+_DEFAULTS = {f.name: f.default for f in fields(Params)}

@@ -9,7 +9,7 @@ import torch
 from ams_torch.geometry.pose import Pose
 from ams_torch.sim import step as step_mod
 from ams_torch.sim.model import Model, coefficients, sag_free_offset, warn_if_no_sag_offset
-from ams_torch.sim.params import Params
+from ams_torch.sim.params import ANGULAR_FIELD, INTEGRITY_FIELD, Params
 from ams_torch.sim.state import Config, Control, ExternalForce, State
 from ams_torch.stages.collide import Collider, MeshCollider
 from ams_torch.stages.hair_hair import HairHair, build_hair_hair
@@ -96,9 +96,9 @@ class Simulator(torch.nn.Module):
     def _make_config(params: Params, learnable: tuple, hair_hair: bool, cols: list, backend: str) -> Config:
         """Static choices: terms that are exactly zero (and not learnable) are not computed."""
         off = lambda name: _is_zero(getattr(params, name)) and name not in learnable  # noqa: E731
-        integrity = "none" if off("integrity_stiffness") else params.integrity_model
+        integrity = "none" if off(INTEGRITY_FIELD[params.material]) else params.integrity_model
         return Config(dt=float(params.dt), substeps=int(params.substeps), integrity_model=integrity,
-                      angular=not off("angular_stiffness"), angular_reaction=params.angular_reaction,
+                      angular=not off(ANGULAR_FIELD[params.material]), angular_reaction=params.angular_reaction,
                       implicit_angular=params.implicit_angular, geometric_stiffness=params.geometric_stiffness,
                       inextensibility=params.inextensibility, ftl_damping=float(params.ftl_damping),
                       collision_rounds=int(params.collision_inextensibility),
@@ -126,6 +126,11 @@ class Simulator(torch.nn.Module):
     def colliders(self) -> list:
         """The simulator's colliders (its own copies, on its device and dtype)."""
         return list(self.model.colliders)
+
+    def drag_coefficient(self) -> torch.Tensor:
+        """γ_i = drag rate × m_i, (S, N) kg/s (e.g. the wind's coefficient: air moving at u pushes
+        with γ u); from the model's current (possibly learnable) values."""
+        return coefficients(self.model).drag
 
     @property
     def hair_hair_grid(self):

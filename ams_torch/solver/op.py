@@ -142,8 +142,8 @@ def solve_banded(blocks: torch.Tensor, rhs: torch.Tensor, check: bool = True) ->
         check: raise ``torch.linalg.LinAlgError`` naming the first strand whose system is not
             SPD (a non-positive pivot), or holds NaN/Inf, instead of returning NaN for it. Costs
             one ``isfinite`` pass over x and one host synchronisation per call (measured in
-            docs/benchmarks/solver.md); the simulator's hot path passes ``check=False`` and relies
-            on its divergence guard.
+            docs/benchmarks/solver.md); skipped inside ``torch.compile``; the simulator's hot path
+            passes ``check=False`` and relies on its divergence guard.
     Returns:
         x: (..., N, 3) with the broadcast leading dims, e.g. velocities in m/s.
 
@@ -163,7 +163,7 @@ def solve_banded(blocks: torch.Tensor, rhs: torch.Tensor, check: bool = True) ->
     blocks = blocks.to(dtype).expand(batch + blocks.shape[-4:]).reshape(strands, n, BANDWIDTH + 1, 3, 3)
     rhs = rhs.to(dtype).expand(batch + rhs.shape[-2:]).reshape(strands, n, 3)
     x = solve_banded_op(blocks, rhs)
-    if check:
+    if check and not torch.compiler.is_compiling():  # a host sync: never inside a compiled graph
         _check_solution(x, blocks, rhs, batch)
     return x.reshape(batch + (n, 3))
 

@@ -114,12 +114,11 @@ class Wind:
         """The external-force callable ``f(x, v, t) -> (..., S, N, 3)`` N for ``sim`` (a
         :class:`~ams_torch.Simulator`), with c = ``coefficient`` or γ m of ``sim``'s model (read
         at every call, so learnable drag and mass are seen as they are)."""
-        model = sim.model
 
         def force(x: torch.Tensor, v: torch.Tensor, t) -> torch.Tensor:
             if self.is_zero:
                 return torch.zeros_like(x)
-            c = self.coefficient if self.coefficient is not None else model.drag * model.particle_mass  # kg/s
+            c = self.coefficient if self.coefficient is not None else sim.drag_coefficient()  # (S, N) kg/s
             return wind_force(self.velocity(x, t), c)
 
         return force

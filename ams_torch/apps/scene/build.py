@@ -33,6 +33,22 @@ def _head_mesh(head: dict):
     return load_mesh(head["mesh"], **_import_args(head))
 
 
+#: m: imported strands shorter than this are dropped (a few millimetre-long "strands" of 32
+#: particles are degenerate: their segments of micrometres make every stiffness of the per-length
+#: material enormous against their mass). Override with ``[groom] min_length``.
+MIN_STRAND_LENGTH = 0.005
+
+
+def _drop_short_strands(groom, min_length: float):
+    keep = groom.lengths() >= min_length
+    if keep.all():
+        return groom
+    out = groom.subset(np.flatnonzero(keep))
+    out.metadata["dropped_short_strands"] = int((~keep).sum())
+    out.metadata["min_length"] = float(min_length)
+    return out
+
+
 def _make_groom(scene: dict, mesh) -> tuple:
     """The scene's groom (scaled strand count): (rest positions (S, N, 3) m as numpy, the
     :class:`~ams_torch.Groom` with its root binding for presets and files, or None)."""
@@ -50,6 +66,7 @@ def _make_groom(scene: dict, mesh) -> tuple:
         from ams_torch.grooms.io import read_groom
 
         groom = read_groom(g["file"], resample=particles or 32, **_import_args(g))
+        groom = _drop_short_strands(groom, g.get("min_length", MIN_STRAND_LENGTH))
         if g.get("bind"):  # roots to their nearest triangles of the head mesh (SPEC §14)
             groom = groom.bind_to(mesh, **({"max_distance": g["max_bind_distance"]} if "max_bind_distance" in g
                                            else {}))
@@ -93,12 +110,15 @@ class BuiltScene:
 
 
 def _ms_variant(params: Params, rest: np.ndarray, offset) -> tuple:
-    """Duplicate the groom as plain mass-spring strands (κ_I = κ_α = 0) shifted by ``offset``."""
+    """Duplicate the groom as plain mass-spring strands (κ_I = κ_α = 0, so no sag-free offset
+    either) shifted by ``offset``; the original strands keep the AMS couplings."""
+    from ams_torch.sim.params import ANGULAR_FIELD, INTEGRITY_FIELD
+
     s = rest.shape[0]
     both = np.concatenate([rest, rest + np.asarray(offset)[None, None]], 0)
     per = lambda v: torch.cat([torch.full((s, 1), float(v)), torch.zeros(s, 1)])  # noqa: E731
-    return params.replace(integrity_stiffness=per(params.integrity_stiffness),
-                          angular_stiffness=per(params.angular_stiffness), sag_free=False), both
+    fi, fa = INTEGRITY_FIELD[params.material], ANGULAR_FIELD[params.material]
+    return params.replace(**{fi: per(getattr(params, fi)), fa: per(getattr(params, fa))}), both
 
 
 def build(scene: dict, device=None, dtype=torch.float32) -> BuiltScene:

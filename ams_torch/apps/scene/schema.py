@@ -8,7 +8,8 @@ See :mod:`ams_torch.apps.scene` for the format. Keys for imported assets (SPEC Â
 
     [head]  mesh = "head.obj" | "body.tfxmesh" (any trimesh format, or TressFX .tfxmesh)
     [groom] file = "hair.tfx" (a format of ams_torch.grooms.io), bind = true (bind the roots
-            to the head mesh), max_bind_distance = 0.001 (m; needs bind)
+            to the head mesh), max_bind_distance = 0.001 (m; needs bind), min_length = 0.005
+            (m: strands shorter than this are dropped; default 5 mm)
     both:   units = "m" | "cm" | "mm"  or  scale = 0.01 (m per file unit; not both),
             up_axis = "y" | "z", transform = 4x4 nested list (rows, last row [0, 0, 0, 1]) or
             { rotation = [[...], [...], [...]], translation = [x, y, z] } (m)
@@ -317,7 +318,7 @@ GROOM = {"preset": (_groom_preset, _ABSENT), "file": (file_path(_groom_exts, "gr
          "particles": (integer(4), _ABSENT), "seed": (integer(0), _ABSENT), "length": (POSITIVE, _ABSENT),
          "radius": (POSITIVE, _ABSENT), "spread": (POSITIVE, _ABSENT), "growth": (_growth, _ABSENT),
          "compare_ms": (boolean, False), "compare_offset": (vec3(), [0.1, 0.0, 0.0]), "bind": (boolean, _ABSENT),
-         "max_bind_distance": (POSITIVE, _ABSENT), **_IMPORT}
+         "max_bind_distance": (POSITIVE, _ABSENT), "min_length": (NONNEG, _ABSENT), **_IMPORT}
 
 
 def _groom(raw, head: dict, ctx) -> dict:
@@ -343,6 +344,8 @@ def _groom(raw, head: dict, ctx) -> dict:
                      f"got {head['mesh']!r}")
     if "max_bind_distance" in g and not g.get("bind"):
         ctx.fail("[groom].max_bind_distance needs bind = true")
+    if "min_length" in g and "file" not in g:
+        ctx.fail("[groom].min_length drops short strands of a groom read from a file ([groom].file)")
     return g
 
 
