@@ -19,14 +19,19 @@ every scene, in one call of the registered op ``torch.ops.ams_torch.frame_dynami
 
 The kernels run the torch definition's arithmetic per strand (``frame.h``, one source for host and
 device): the same formulas, branches (``torch.where``) and safe-normalisation thresholds, in the
-same operation order wherever practical, so float64 frames agree to about 1e-15 relative (the
-differences are the order of a few sums inside torch's matmul and einsum kernels, fused
-multiply-adds, and atan2/sin/cos to within an ulp). A callable external force ``f(x, v, t)`` is
+same operation order wherever practical, so float64 frames agree to about 1e-15 relative in x
+and 1e-14 in v (the differences are the order of a few sums inside torch's matmul and einsum
+kernels, fused multiply-adds, and atan2/sin/cos to within an ulp, amplified by the solve's
+conditioning and by follow-the-leader's correction / Δt). A callable external force ``f(x, v, t)`` is
 not supported natively (the caller keeps the torch path for it: :func:`native_frame_supported`).
 
 ``torch.ops.ams_torch.frame_assembly`` (and :func:`native_frame_assembly`) returns one substep's
 assembled system instead, ``blocks`` (..., S, N, 4, 3, 3) and ``rhs`` (..., S, N, 3) as
 :func:`ams_torch.sim.assembly.assemble_system` gives them, for term-by-term parity tests.
+
+``native_collisions`` is the collision stage of :func:`ams_torch.sim.step.collisions` for colliders
+at given world poses, one registered op ``torch.ops.ams_torch.collisions`` (``csrc/collide``), with
+the same structure (torch default, CPU/CUDA kernels, fake); see the second half of this module.
 """
 from __future__ import annotations
 
@@ -80,7 +85,7 @@ def native_frame_available(device, dtype) -> bool:
 
 
 def _tensors_of(coeffs: Coefficients, x, v, ghost_rest, sag_offset, pose0: Pose, pose1: Pose, external_force):
-    out = [x, v, ghost_rest, sag_offset, *coeffs]
+    out = [x, v, ghost_rest, sag_offset] + [c for c in coeffs if isinstance(c, torch.Tensor)]
     for p in (pose0, pose1):
         out += [t for t in (p.rotation, p.translation, p.linear_velocity, p.angular_velocity) if t is not None]
     if isinstance(external_force, torch.Tensor):
