@@ -21,7 +21,7 @@ Everything else lives in the subpackages, which import downwards only (no cycles
 """
 from ams_torch import apps, geometry, grooms, sim, solver, stages
 from ams_torch.geometry.pose import Pose
-from ams_torch.grooms.growth import preset
+from ams_torch.grooms.presets import preset
 from ams_torch.grooms.head import default_head
 from ams_torch.grooms.io import read_groom, write_groom
 from ams_torch.sim.params import Params

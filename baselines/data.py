@@ -32,7 +32,7 @@ from ams_torch.testing import shake_poses, sphere_groom
 from .guides import fps_order
 
 __all__ = ["random_motion", "sweep_poses", "simulate_sequence", "generate_dataset", "HairDataset",
-           "read_rest", "is_generated"]
+           "is_generated"]
 
 
 def random_motion(frames: int, dt: float, rng: np.random.Generator, scale: float = 1.0) -> List[at.Pose]:
@@ -155,17 +155,6 @@ def _load_generated(path: str, sequences, split) -> tuple:
                      "rotation": torch.from_numpy(f["rotations"]), "translation": torch.from_numpy(f["translations"])})
     ds.close()
     return [f"seq_{i:06d}" for i in indices], rest, order, float(first["dt"]), data
-
-
-def read_rest(path: str):
-    """(rest (S, N, 3) float32 tensor, guide order long tensor) of a dataset (either format):
-    ``fps_order`` (S,) of a :func:`generate_dataset` file, or the stored ``guide_indices`` (G,)
-    of an ``ams-torch generate`` dataset."""
-    if is_generated(path):
-        ds = HairDataset(path)
-        return ds.rest, ds.fps_order
-    with h5py.File(path, "r") as h:
-        return torch.from_numpy(h["rest"][...]), torch.from_numpy(h["fps_order"][...]).long()
 
 
 class HairDataset(torch.utils.data.Dataset):

@@ -30,6 +30,7 @@ from matplotlib.collections import PolyCollection  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import ams_torch.grooms.growth as growth  # noqa: E402
+import ams_torch.grooms.presets as presets  # noqa: E402
 from ams_torch.grooms.head import default_head  # noqa: E402
 from ams_torch.geometry.sdf import SDFGrid  # noqa: E402
 
@@ -149,7 +150,7 @@ def sweep_sheet(mesh, out: Path, strands: int = 60, particles: int = 48):
 
 def preset_sheet(mesh, name: str, out: Path, strands: int, particles=None, sdf=None):
     t0 = time.perf_counter()
-    g = growth.preset(name, strands=strands, particles=particles, seed=0, mesh=mesh, sdf=sdf)
+    g = presets.preset(name, strands=strands, particles=particles, seed=0, mesh=mesh, sdf=sdf)
     t1 = time.perf_counter()
     fig, axes = plt.subplots(1, 3, figsize=(10.5, 4.2))
     for ax, view in zip(axes, ("front", "side", "back")):
@@ -176,7 +177,7 @@ def main(argv=None):
     if not args.no_sweeps:
         sweep_sheet(mesh, out / "growth_sweeps.png")
         print("wrote", out / "growth_sweeps.png", os.path.getsize(out / "growth_sweeps.png") // 1024, "KB")
-    for name in args.only or sorted(growth.PRESETS):
+    for name in args.only or sorted(presets.PRESETS):
         path = out / f"preset_{name}.png"
         preset_sheet(mesh, name, path, args.strands, sdf=sdf)
         print("wrote", path, os.path.getsize(path) // 1024, "KB")

@@ -68,6 +68,20 @@ def test_simulate_writes_hdf5_and_video(tmp_path, capsys):
     assert iio.imread(tmp_path / "last.png").ndim == 3
     seq = read_sequence(str(h5))
     assert seq["positions"].shape == (4, 12, 8, 3) and seq["dt"] > 0
+    # and out to animated USD: the time samples are the HDF5 frames
+    pytest.importorskip("pxr")
+    from pxr import Usd, UsdGeom
+
+    usd = tmp_path / "hair.usda"
+    assert main(["export", str(h5), "--usd", str(usd), "--quiet"]) == 0
+    stage = Usd.Stage.Open(str(usd))
+    curves = [UsdGeom.BasisCurves(p) for p in stage.Traverse() if p.IsA(UsdGeom.BasisCurves)]
+    assert len(curves) == 1
+    points = curves[0].GetPointsAttr()
+    samples = points.GetTimeSamples()
+    assert len(samples) == 4
+    np.testing.assert_array_equal(np.asarray(points.Get(samples[-1])), seq["positions"][-1].reshape(-1, 3))
+    assert main(["export", str(tmp_path / "missing.h5"), "--usd", str(usd)]) == 2
 
 
 def test_frames_override_and_bad_scene(tmp_path, capsys):

@@ -6,9 +6,10 @@ import pytest
 import torch
 import trimesh
 
-import ams_torch.grooms.growth as growth
+import ams_torch.grooms.presets as presets
 from ams_torch.grooms.groom import Groom, resample_strands, strand_lengths
-from ams_torch.grooms.growth import GrowthParams, grow, grow_from_roots, preset
+from ams_torch.grooms.growth import GrowthParams, grow, grow_from_roots
+from ams_torch.grooms.presets import preset
 
 
 # ------------------------------------------------------------------------------------------
@@ -210,7 +211,7 @@ def test_collision_aware_growth_keeps_strands_out_of_the_head(head, head_sdf):
     assert np.median(seg) == pytest.approx(0.006, rel=1e-6)
 
 
-@pytest.mark.parametrize("name", growth.PRESETS)
+@pytest.mark.parametrize("name", presets.PRESETS)
 def test_presets_start_outside_the_head(name, head, head_sdf):
     g = preset(name, strands=300, seed=0, mesh=head, sdf=head_sdf)
     assert g.metadata["preset"] == name

@@ -15,6 +15,9 @@
           resumes a killed run; one run per folder at a time (a lock file).
     ams-torch validate DIR|FILE [--allow-partial]
         exit 0: complete and sound; 1: problems found (each listed); 2: could not run.
+    ams-torch export SEQUENCE.h5 --usd OUT.usd[a|c] [--every k] [--width m]
+        → animated USD (BasisCurves with time-sampled points, the head and colliders as meshes
+          with time-sampled transforms; docs/assets.md), for Blender, Houdini, Omniverse, Unreal.
     ams-torch info
 
 Expected failures (bad input, a bad file, a simulation that diverged, a busy output folder)
@@ -245,6 +248,16 @@ def _cmd_render(args) -> int:
     return 0
 
 
+def _cmd_export(args) -> int:
+    from ams_torch.apps.export import export_usd
+
+    if not os.path.isfile(args.sequence):
+        raise FileNotFoundError(f"{args.sequence}: no such sequence file")
+    path = export_usd(args.sequence, args.usd, every=args.every, width=args.width, progress=not args.quiet)
+    print(f"wrote {path}")
+    return 0
+
+
 def _cmd_info(args) -> int:
     import platform
 
@@ -405,6 +418,13 @@ def _parser() -> argparse.ArgumentParser:
                     "are notes, not problems")
     vp.add_argument("--quiet", action="store_true")
     vp.set_defaults(fn=_cmd_validate)
+    ep = sub.add_parser("export", help="write a simulate sequence.h5 as animated USD (needs usd-core)")
+    ep.add_argument("sequence", help="a sequence.h5 written by ams-torch simulate")
+    ep.add_argument("--usd", required=True, help="output .usd, .usda or .usdc")
+    ep.add_argument("--every", type=int, default=1, help="write every k-th frame")
+    ep.add_argument("--width", type=float, help="strand diameter, metres (default 70 µm)")
+    ep.add_argument("--quiet", action="store_true", help="no progress bar")
+    ep.set_defaults(fn=_cmd_export)
     ip = sub.add_parser("info", help="versions, devices, native solver status")
     ip.set_defaults(fn=_cmd_info)
     return ap

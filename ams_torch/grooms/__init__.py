@@ -5,7 +5,8 @@ Imports only :mod:`ams_torch.geometry`.
 """
 from ams_torch.grooms import io
 from ams_torch.grooms.groom import Groom, resample_strands
-from ams_torch.grooms.growth import PRESETS, GrowthParams, grow, preset
+from ams_torch.grooms.growth import GrowthParams, grow
+from ams_torch.grooms.presets import PRESETS, preset
 from ams_torch.grooms.head import default_head
 from ams_torch.grooms.io import read_groom, write_groom
 

@@ -461,17 +461,6 @@ class Groom:
                      mv(self.root_face_vertices), mv(self.root_rest_frames), self.strands, dict(self.metadata),
                      self.width)
 
-    def save(self, path) -> None:
-        """Write the groom to ``path``; the format follows the extension (see :mod:`ams_torch.grooms.io`)."""
-        from ams_torch.grooms.io import write_groom
-        write_groom(path, self)
-
-    @staticmethod
-    def load(path, resample: Optional[int] = None) -> "Groom":
-        """Read a groom from ``path`` (see :func:`ams_torch.grooms.io.read_groom`)."""
-        from ams_torch.grooms.io import read_groom
-        return read_groom(path, resample=resample)
-
     def __repr__(self) -> str:
         shape = (f"{self.num_strands}x{self.num_particles}" if self.rest_positions is not None
                  else f"{self.num_strands} ragged strands")

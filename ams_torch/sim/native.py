@@ -45,6 +45,7 @@ import torch
 from ams_torch.geometry.pose import Pose
 from ams_torch.geometry.sdf import SDFGrid
 from ams_torch.sim.assembly import assemble_system
+from ams_torch.sim.contact import collisions_world
 from ams_torch.sim.dynamics import frame_dynamics, inextensibility, substep_poses
 from ams_torch.sim.model import Coefficients, Model
 from ams_torch.sim.state import Config, ExternalForce
@@ -353,20 +354,6 @@ def native_collisions_supported(model: Model, x: torch.Tensor, v: torch.Tensor, 
         if any(t.requires_grad for t in tensors):
             return False
     return True
-
-
-def collisions_world(model: Model, config: Config, x: torch.Tensor, v: torch.Tensor, head_pose: Pose,
-                     world_poses, colliders=None) -> tuple:
-    """The torch definition of the stage for given world poses: ``step.collisions`` after its
-    pose resolution. x, v: (..., S, N, 3) m, m/s. Returns the new (x, v)."""
-    cols = list(model.colliders) if colliders is None else list(colliders)
-    free = ~model.pinned
-    x, v = collide(x, v, config.dt, cols, world_poses, free=free)
-    if config.inextensibility:
-        for _ in range(config.collision_rounds):
-            x, v = inextensibility(model, config, x, v, head_pose, config.dt)
-            x, v = collide(x, v, 0.0, cols, world_poses, free=free)
-    return x, v
 
 
 def _as(t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:

@@ -9,6 +9,7 @@ import torch
 from ams_torch.geometry.pose import Pose
 from ams_torch.sim import step as step_mod
 from ams_torch.sim.model import Model, coefficients, sag_free_offset, warn_if_no_sag_offset
+from ams_torch.sim.native import native_frame_available
 from ams_torch.sim.params import ANGULAR_FIELD, INTEGRITY_FIELD, Params
 from ams_torch.sim.state import Config, Control, ExternalForce, State
 from ams_torch.stages.collide import Collider, MeshCollider
@@ -39,7 +40,9 @@ class Simulator(torch.nn.Module):
         learnable: names of Params material fields (e.g. ``("integrity_stiffness", "drag")``)
             to make ``nn.Parameter`` s of the module, for ``torch.optim.Adam(sim.parameters())``.
         backend: "torch" (the differentiable definition), "native" (the fused kernels, see
-            :mod:`ams_torch.sim.native`) or "auto" (native when built and nothing requires grad).
+            :mod:`ams_torch.sim.native`; an error when they cannot be built) or "auto" (the default:
+            native when they can be built, torch otherwise). Either way, a frame whose inputs
+            require grad takes the torch definition, so gradients stay exact.
 
     The fixed data is ``sim.model`` (a registered submodule: ``.to()``, ``.double()``,
     ``state_dict()`` work), the frozen settings ``sim.config``; ``sim.step`` builds a
@@ -80,7 +83,8 @@ class Simulator(torch.nn.Module):
         self.model.colliders = torch.nn.ModuleList(cols)
         self.hair_hair = hair_hair
         self.requested_backend = backend
-        self.config = self._make_config(params, tuple(learnable), hair_hair is not None, cols, backend)
+        self.config = self._make_config(params, tuple(learnable), hair_hair is not None, cols,
+                                        self._resolve_backend(backend, device, dtype))
         init = (pose or Pose.identity(dtype=dtype)).to(device=device, dtype=dtype)
         if init.rotation.shape != (3, 3):
             raise ValueError(f"pose (the head pose at t = 0) must be a single pose; got rotation "
@@ -91,6 +95,22 @@ class Simulator(torch.nn.Module):
         self.register_buffer("initial_linear_velocity", (init.linear_velocity if init.has_velocity else z).clone())
         self.register_buffer("initial_angular_velocity", (init.angular_velocity if init.has_velocity else z).clone())
         self._frames = 0  # calls of step, to run the divergence guard every check_every frames
+
+    @staticmethod
+    def _resolve_backend(backend: str, device, dtype) -> str:
+        """"auto": the fused native kernels when they can be built for this device and dtype (the
+        build happens here, once, not inside a step), else torch (one warning says why);
+        "native": the same, but an error when they cannot be had; "torch": the definition."""
+        if backend == "torch":
+            return "torch"
+        available = native_frame_available(device, dtype)
+        if backend == "native" and not available:
+            from ams_torch.solver.build import native_status
+
+            st = native_status().get("frame_" + torch.device(device).type, {})
+            raise ValueError(f"backend='native' but the native frame kernel is not available for {device}/{dtype}: "
+                             f"{st.get('reason') or 'float32/float64 on CPU or CUDA only'}")
+        return "native" if available else "torch"
 
     @staticmethod
     def _make_config(params: Params, learnable: tuple, hair_hair: bool, cols: list, backend: str) -> Config:

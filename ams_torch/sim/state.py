@@ -117,9 +117,9 @@ class Config:
         follow_head: per collider, whether its pose is relative to the head.
         hair_hair: the hair–hair stage runs. colliders: number of colliders (0: no collision stage).
         max_relative_speed: m/s, the divergence guard's speed limit relative to the head.
-        backend: "torch" (the differentiable definition), "native" (the fused kernels, see
-            :mod:`ams_torch.sim.native`) or "auto" (native where built; torch when an input
-            requires grad, always).
+        backend: "torch" (the differentiable definition) or "native" (the fused kernels of
+            :mod:`ams_torch.sim.native`, which keep the torch definition for a frame whose inputs
+            require grad); the simulator resolves its "auto" to one of them when it is built.
     """
 
     dt: float

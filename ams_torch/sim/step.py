@@ -21,10 +21,12 @@ from torch.profiler import record_function
 
 from ams_torch.geometry.pose import Pose
 from ams_torch.sim import forces
-from ams_torch.sim.dynamics import frame_dynamics, inextensibility
+from ams_torch.sim.contact import collisions_world
+from ams_torch.sim.dynamics import frame_dynamics
+from ams_torch.sim.native import native_collisions, native_frame_dynamics
 from ams_torch.sim.model import Coefficients, Model, coefficients
 from ams_torch.sim.state import Config, Control, State
-from ams_torch.stages.collide import collide, resolve_world_poses
+from ams_torch.stages.collide import resolve_world_poses
 from ams_torch.stages.hair_hair import hair_hair_stage
 
 __all__ = ["step", "resolve_pose", "collisions", "plastic_update", "check_state", "SimulationDiverged"]
@@ -58,20 +60,15 @@ def resolve_pose(prev: Pose, pose: Optional[Pose], dt) -> tuple:
 
 
 def collisions(model: Model, config: Config, x: torch.Tensor, v: torch.Tensor, head_pose: Pose,
-               collider_poses: Sequence[Optional[Pose]]) -> tuple:
-    """The collision stage (SPEC §8): the contact response of every collider, then
-    ``config.collision_rounds`` rounds of edge-length restore (follow-the-leader) and push-out
-    (the response with Δt = 0), so contact does not leave stretched edges.
+               collider_poses: Sequence[Optional[Pose]], native: bool = False) -> tuple:
+    """The collision stage (SPEC §8): the colliders' world poses for this frame
+    (:func:`~ams_torch.stages.collide.resolve_world_poses`), then the response and the edge-length
+    restore (:func:`~ams_torch.sim.contact.collisions_world`, or its fused native kernel).
     x, v: (..., S, N, 3) m, m/s. Returns the new (x, v)."""
-    cols = list(model.colliders)
-    poses = resolve_world_poses(cols, head_pose, list(collider_poses) or None)
-    free = ~model.pinned
-    x, v = collide(x, v, config.dt, cols, poses, free=free)
-    if config.inextensibility:
-        for _ in range(config.collision_rounds):
-            x, v = inextensibility(model, config, x, v, head_pose, config.dt)
-            x, v = collide(x, v, 0.0, cols, poses, free=free)
-    return x, v
+    poses = resolve_world_poses(list(model.colliders), head_pose, list(collider_poses) or None)
+    if native:
+        return native_collisions(model, config, x, v, head_pose, poses)
+    return collisions_world(model, config, x, v, head_pose, poses)
 
 
 def plastic_update(model: Model, coeffs: Coefficients, x: torch.Tensor, ghost_rest: torch.Tensor,
@@ -122,7 +119,7 @@ def _needs_grad(state: State, coeffs: Coefficients, control: Control, pose: Pose
 
 def stage_backend(config: Config, state: State, coeffs: Coefficients, control: Control, pose: Pose) -> str:
     """"torch" when the config says so or an input requires grad (gradients stay exact on the torch
-    definition), else the config's "auto" or "native" (SPEC §15)."""
+    definition), else the config's "native" (SPEC §15)."""
     if config.backend == "torch" or _needs_grad(state, coeffs, control, pose):
         return "torch"
     return config.backend
@@ -154,15 +151,18 @@ def step(model: Model, state: State, control: Control, config: Config, timer=Non
     coeffs = coefficients(model)
     time = state.time if control.time is None else control.time
     backend = stage_backend(config, state, coeffs, control, pose1)
+    native = backend == "native"  # the fused kernels (they keep the torch definition for what they cannot run)
+    dynamics = native_frame_dynamics if native else frame_dynamics
     with stage("dynamics"):
-        x, v = frame_dynamics(model, coeffs, config, state.x, state.v, state.ghost_rest, state.sag_offset, pose0,
-                              pose1, hermite, time, control.external_force)
+        x, v = dynamics(model, coeffs, config, state.x, state.v, state.ghost_rest, state.sag_offset, pose0, pose1,
+                        hermite, time, control.external_force)
     if config.hair_hair:
         with stage("hair_hair"):
-            x, v = hair_hair_stage(model.hair_hair, x, v, coeffs.mass, pose1, dt, ~model.pinned, backend=backend)
+            x, v = hair_hair_stage(model.hair_hair, x, v, coeffs.mass, pose1, dt, ~model.pinned,
+                                   backend="auto" if native else "torch")
     if config.colliders:
         with stage("collisions"):
-            x, v = collisions(model, config, x, v, pose1, control.collider_poses)
+            x, v = collisions(model, config, x, v, pose1, control.collider_poses, native)
     v = torch.where(model.pinned[..., None], pose1.velocity_at(x), v)
     ghost_rest = state.ghost_rest
     if config.nonhookean:

@@ -57,7 +57,7 @@ def _make_groom(scene: dict, mesh) -> tuple:
     strands = max(1, int(round(g.get("strands", 1000) * scale)))
     particles = g.get("particles")
     if "preset" in g:
-        from ams_torch.grooms.growth import preset
+        from ams_torch.grooms.presets import preset
 
         groom = preset(g["preset"], strands=strands, particles=particles, seed=g.get("seed", 0), mesh=mesh,
                        **g.get("growth", {}))

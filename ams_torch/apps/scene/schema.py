@@ -308,7 +308,7 @@ def _growth(v, key, ctx):
 
 
 def _groom_preset(v, key, ctx):
-    from ams_torch.grooms.growth import PRESETS
+    from ams_torch.grooms.presets import PRESETS
 
     return one_of(*PRESETS)(v, key, ctx)
 
