@@ -24,8 +24,9 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q -ra
 
+# Everything, the `slow` tests included, with the property tests' long profile.
 test-slow: $(STAMP)
-	$(PY) -m pytest -q -ra -m slow
+	HYPOTHESIS_PROFILE=slow $(PY) -m pytest -q -ra -o addopts=""
 
 clean:
 	rm -rf $(VENV) out build *.egg-info
