@@ -166,7 +166,7 @@ def main(argv=None) -> int:
             print(f"{case['name']:5s} {material:12s} " + " ".join(f"{e:8.3f}" for e in r["rms_error_mm"]) +
                   f"  order {r['order']:.2f}  time error {r['time_error_mm']:.2g} mm", flush=True)
     out = Path(args.out)
-    meta = {"command": "python scripts/convergence_n.py" + shown_args(argv), "wall_s": time.perf_counter() - t0,
+    meta = {"command": ("python scripts/convergence_n.py " + shown_args(argv)).strip(), "wall_s": time.perf_counter() - t0,
             "machine": machine_info(), "cases": [{"name": c["name"], "what": c["what"]} for c in cases]}
     (out / "material_convergence.json").write_text(json.dumps({"meta": meta, "records": records}, indent=1))
     render(records, meta, out)
