@@ -66,9 +66,9 @@ def test_curl_noise_is_divergence_free():
     assert u.norm(dim=-1).mean() > 0.1
 
 
-def _run(external, frames=20):
+def _run(external, frames=20, backend="auto"):
     rest = sphere_groom(30, 12, radius=0.1, length=0.15)
-    sim = at.Simulator(rest, at.Params())
+    sim = at.Simulator(rest, at.Params(), backend=backend)
     st = sim.initial_state()
     force = external.bind(sim) if external is not None else None
     for _ in range(frames):
@@ -77,7 +77,9 @@ def _run(external, frames=20):
 
 
 def test_zero_wind_equals_no_wind_exactly():
-    assert torch.equal(_run(None), _run(Wind(speed=0.0, gust=0.5, turbulence=0.0)))
+    # on one path: a wind callable keeps a frame on the torch definition (the native kernel takes
+    # forces held over the frame), which agrees with the native path to ~1e-14, not bit for bit
+    assert torch.equal(_run(None, backend="torch"), _run(Wind(speed=0.0, gust=0.5, turbulence=0.0), backend="torch"))
 
 
 def test_hair_moves_downwind():

@@ -38,6 +38,10 @@ def matrix_to_axis_angle(rot: torch.Tensor) -> torch.Tensor:
     return w * scale[..., None]
 
 
+def _as_dtype(t: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    return t if t.dtype == dtype else t.to(dtype)
+
+
 def rotation_tolerance(dtype: torch.dtype) -> float:
     """Largest accepted ``max |R Rᵀ − I|`` and ``|det R − 1|`` for a rotation of this dtype:
     10 √ε (3.5e-3 in float32, 1.5e-7 in float64)."""
@@ -145,6 +149,14 @@ class Pose:
                     st("angular_velocity") if vel else None, check=False)
 
     def to(self, device=None, dtype=None) -> "Pose":
+        """The pose on ``device`` / in ``dtype`` (self when nothing changes: no ops)."""
+        dev = None if device is None else torch.device(device)
+        r = self.rotation
+        if (dev is None or (r.device.type == dev.type and (dev.index is None or r.device.index == dev.index))) and \
+                (dtype is None or r.dtype == dtype) and all(t is None or (t.device == r.device and t.dtype == r.dtype)
+                                                            for t in (self.translation, self.linear_velocity,
+                                                                      self.angular_velocity)):
+            return self
         f = lambda t: None if t is None else t.to(device=device, dtype=dtype)  # noqa: E731
         return Pose(f(self.rotation), f(self.translation), f(self.linear_velocity), f(self.angular_velocity),
                     check=False)
@@ -188,19 +200,19 @@ class Pose:
         if not self.has_velocity:
             return torch.zeros_like(x)
         _, t = self._bcast(x)
-        v, w = self.linear_velocity.to(x.dtype), self.angular_velocity.to(x.dtype)
-        while v.dim() < t.dim():  # same singleton dims as _bcast gives t
-            v, w = v.unsqueeze(-2), w.unsqueeze(-2)
-        return v[..., None, :] + torch.cross(w[..., None, :].expand_as(x), x - t[..., None, :], dim=-1)
+        v, w = _as_dtype(self.linear_velocity, x.dtype), _as_dtype(self.angular_velocity, x.dtype)
+        v, w = v.reshape(t.shape[:-1] + (1, 3)), w.reshape(t.shape[:-1] + (1, 3))  # (..., 1, 3), as t
+        return v + torch.linalg.cross(w, x - t[..., None, :])
 
     def _bcast(self, p: torch.Tensor):
-        r, t = self.rotation.to(p.dtype), self.translation.to(p.dtype)
+        r, t = _as_dtype(self.rotation, p.dtype), _as_dtype(self.translation, p.dtype)
         # pose batch dims must be a suffix-compatible prefix of p's leading dims
         extra = p.dim() - 2 - (r.dim() - 2)
         if extra < 0:
             raise ValueError(f"pose has batch shape {tuple(r.shape[:-2])} but points have shape {tuple(p.shape)}")
-        for _ in range(extra):
-            r, t = r.unsqueeze(-3), t.unsqueeze(-2)
+        if extra:
+            lead = r.shape[:-2]
+            r, t = r.reshape(lead + (1,) * extra + (3, 3)), t.reshape(lead + (1,) * extra + (3,))
         return r, t
 
     # -- motion over a frame ----------------------------------------------------------

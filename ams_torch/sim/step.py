@@ -87,24 +87,28 @@ def plastic_update(model: Model, coeffs: Coefficients, x: torch.Tensor, ghost_re
 
 
 def _nonfinite(*tensors) -> torch.Tensor:
-    bad = torch.zeros((), dtype=torch.bool, device=tensors[0].device)
-    for t in tensors:
-        bad = bad | ~torch.isfinite(t).all()
-    return bad
+    """() bool: whether any of the tensors holds NaN/Inf (one sum each: NaN and ±Inf propagate)."""
+    total = tensors[0].sum()
+    for t in tensors[1:]:
+        total = total + t.sum()
+    return ~torch.isfinite(total)
 
 
-def _divergence(config: Config, state: State, control: Control, x, v, pose: Pose) -> tuple:
-    """Update the state's divergence flag (device-side): (diverged_frame, diverged_input)."""
-    rel = torch.nan_to_num(v - pose.velocity_at(x), nan=0.0, posinf=0.0, neginf=0.0)
-    fast = rel.norm(dim=-1).amax() > config.max_relative_speed
-    bad = _nonfinite(x, v) | fast
+def _finish(model: Model, config: Config, state: State, control: Control, x, v, pose: Pose) -> tuple:
+    """The end of a frame: pinned particles take the head's rigid velocity, and the divergence
+    flag is updated (device-side). Returns (v, diverged_frame, diverged_input)."""
+    head = pose.velocity_at(x)  # the head's rigid velocity at every particle, (..., S, N, 3)
+    v = torch.where(model.pinned[..., None], head, v)
+    # NaN/Inf in x or v makes the largest relative speed NaN (amax propagates it), and NaN <= limit
+    # is False: one comparison catches both non-finite and exploding particles
+    bad = ~(torch.linalg.vector_norm(v - head, dim=-1).amax() <= config.max_relative_speed)
     inputs = [state.x, state.v]
     if isinstance(control.external_force, torch.Tensor):
         inputs.append(control.external_force)
     first = (state.diverged_frame < 0) & bad
     frame = torch.where(first, state.frame + 1, state.diverged_frame)
     bad_input = torch.where(first, _nonfinite(*inputs), state.diverged_input)
-    return frame, bad_input
+    return v, frame, bad_input
 
 
 def _needs_grad(state: State, coeffs: Coefficients, control: Control, pose: Pose) -> bool:
@@ -163,11 +167,10 @@ def step(model: Model, state: State, control: Control, config: Config, timer=Non
     if config.colliders:
         with stage("collisions"):
             x, v = collisions(model, config, x, v, pose1, control.collider_poses, native)
-    v = torch.where(model.pinned[..., None], pose1.velocity_at(x), v)
+    v, diverged_frame, diverged_input = _finish(model, config, state, control, x, v, pose1)
     ghost_rest = state.ghost_rest
     if config.nonhookean:
         ghost_rest = plastic_update(model, coeffs, x, ghost_rest, state.sag_offset, pose1)
-    diverged_frame, diverged_input = _divergence(config, state, control, x, v, pose1)
     return State(x=x, v=v, ghost_rest=ghost_rest, sag_offset=state.sag_offset, pose=pose1, time=time + dt,
                  frame=state.frame + 1, diverged_frame=diverged_frame, diverged_input=diverged_input)
 

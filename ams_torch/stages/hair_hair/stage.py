@@ -36,11 +36,11 @@ def _inputs(grid: HairHairGrid, x: torch.Tensor, v: torch.Tensor, mass, free: Op
     lead = x.shape[:-3]
     b, p = math.prod(lead), s * n
     if isinstance(mass, torch.Tensor):
-        mass = mass.to(device=x.device, dtype=x.dtype)
+        mass = _like(mass, x)
     else:  # a fill, not a host-to-device copy (capturable by CUDA graphs)
         mass = torch.full((), float(mass), device=x.device, dtype=x.dtype)
     try:
-        m = mass.expand(*lead, s, n).reshape(b, p)
+        m = mass.reshape(b, p) if tuple(mass.shape) == tuple(lead) + (s, n) else mass.expand(*lead, s, n).reshape(b, p)
     except RuntimeError:
         raise ValueError(f"mass of shape {tuple(mass.shape)} does not broadcast to {tuple(lead) + (s, n)}")
     if free is None:
@@ -49,8 +49,14 @@ def _inputs(grid: HairHairGrid, x: torch.Tensor, v: torch.Tensor, mass, free: Op
         raise ValueError(f"free must be a tensor of shape ({n},) or ({s}, {n}); got "
                          f"{tuple(free.shape) if isinstance(free, torch.Tensor) else type(free).__name__}")
     else:  # (M,) with particle p of a scene free when free[p mod M]
-        free = free.to(device=x.device, dtype=torch.bool).reshape(-1)
+        free = (free if free.dtype == torch.bool and free.device == x.device
+                else free.to(device=x.device, dtype=torch.bool)).reshape(-1)
     return x.reshape(b, p, 3), v.reshape(b, p, 3), m, free, lead
+
+
+def _like(t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """t on x's device and dtype (t itself when it already is: no op dispatched)."""
+    return t if t.dtype == x.dtype and t.device == x.device else t.to(device=x.device, dtype=x.dtype)
 
 
 def _dt_tensor(dt, like: torch.Tensor) -> torch.Tensor:
@@ -116,8 +122,8 @@ def hair_hair_stage(grid: Optional[HairHairGrid], x: torch.Tensor, v: torch.Tens
     xf, vf, m, free, lead = _inputs(grid, x, v, mass, free)
     dtt = _dt_tensor(dt, x)
     frame = scene_frame(head_pose, lead, xf.shape[0], x.dtype, x.device)
-    origin = grid.origin.to(device=x.device, dtype=x.dtype)
-    target = grid.target_density.to(device=x.device, dtype=x.dtype)
+    origin = _like(grid.origin, x)
+    target = _like(grid.target_density, x)
     h, r, pic = grid.cell_size, grid.resolution, 1.0 - cfg.flip
     solve = (cfg.pressure_iterations, cfg.jacobi_omega, cfg.volume_stiffness, pic)
     if _use_native(backend, (xf, vf, m, frame, origin, target, dtt), x.dtype):

@@ -43,14 +43,17 @@ def scene_frame(head_pose: Optional[Pose], lead: tuple, b: int, dtype, device) -
     if head_pose is None:
         eye = torch.eye(3, device=device, dtype=dtype)
         return torch.cat((eye, torch.zeros(3, 3, device=device, dtype=dtype))).expand(b, 6, 3)
+    def flat(t, tail):  # no op dispatched for what already has the right device, dtype and shape
+        if t.dtype != dtype or t.device != torch.device(device):
+            t = t.to(device=device, dtype=dtype)
+        if tuple(t.shape) != tuple(lead) + tail:
+            t = t.expand(*lead, *tail)
+        return t.reshape((b,) + ((1, 3) if tail == (3,) else tail))
+
     try:
-        rot = head_pose.rotation.to(device=device, dtype=dtype).expand(*lead, 3, 3).reshape(b, 3, 3)
-        rows = [rot]
+        rows = [flat(head_pose.rotation, (3, 3))]
         for vec in (head_pose.translation, head_pose.linear_velocity, head_pose.angular_velocity):
-            if vec is None:
-                rows.append(torch.zeros(b, 1, 3, device=device, dtype=dtype))
-            else:
-                rows.append(vec.to(device=device, dtype=dtype).expand(*lead, 3).reshape(b, 1, 3))
+            rows.append(torch.zeros(b, 1, 3, device=device, dtype=dtype) if vec is None else flat(vec, (3,)))
     except RuntimeError:
         raise ValueError(f"head_pose batch shape {tuple(head_pose.rotation.shape[:-2])} does not "
                          f"broadcast to the leading dims of x {tuple(lead)}")

@@ -1,0 +1,236 @@
+"""Benchmark whole frames: the fused native path against the torch definition, per stage.
+
+    .venv/bin/python scripts/bench_frame.py                      # CPU → docs/benchmarks/frame.{md,json}
+    .venv/bin/python scripts/bench_frame.py --device cuda --strands 10000 100000 --resolution 128
+    .venv/bin/python scripts/bench_frame.py --quick --out /tmp/frame   # smoke test
+
+Scenes (N = 32 particles, the default head):
+
+- ``dynamics``: strands hanging from the head (``hanging_groom``), shaken; no hair–hair, no
+  collisions (the strand dynamics alone: substeps of assembly + solve, follow-the-leader).
+- ``every_stage``: the same groom with head collisions (64³ SDF) and hair–hair on a grid
+  (``--resolution``, default 64).
+- ``default``: the ``make demo`` scene itself (``datasets/scenes/default.toml``: 1,000 grown
+  straight strands, head collisions, hair–hair 64³).
+
+Each case builds one simulator per path (``backend="native"`` and ``"torch"``), warms both up,
+then times frames interleaved (native, torch, native, ...) so both see the same machine load:
+min and median ms/frame, the stages' share (``dynamics``, ``hair_hair``, ``collisions``, the rest
+as ``other``), the ops per frame (top-level ATen operators and custom ops in the profiler, i.e.
+what is dispatched per frame), and the peak memory per particle beyond the state (the torch
+allocator's peak during a frame, from the profiler's memory events, over S·N; the native kernels'
+per-thread scratch is outside the allocator and not included). Paths too slow for a case are
+skipped (``--torch-max-strands``). JSON records:
+``{"scene", "S", "N", "device", "path", "stage", "median_ms", "min_ms", "ops_per_frame",
+"peak_bytes_per_particle"}``.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import ams_torch as at  # noqa: E402
+from ams_torch._bench import machine, machine_info, shown_args, sync  # noqa: E402
+from ams_torch.geometry.sdf import SDFGrid  # noqa: E402
+from ams_torch.grooms.head import hanging_groom  # noqa: E402
+from ams_torch.testing import shake_poses  # noqa: E402
+
+STAGES = ("dynamics", "hair_hair", "collisions")
+PATHS = ("native", "torch")
+
+
+def _load() -> float:
+    return round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else float("nan")
+
+
+def build_case(scene: str, strands: int, device, dtype, resolution: int, head, grid) -> dict:
+    """Simulators of both paths for a case, their initial states and a motion."""
+    if scene == "default":
+        from ams_torch.apps.scene import build, load_scene
+
+        spec = load_scene(str(ROOT / "datasets" / "scenes" / "default.toml"))
+        sims = {}
+        for path in PATHS:
+            run = build(spec, device=device, dtype=dtype)
+            old = run.sim
+            sims[path] = at.Simulator(old.model.rest_positions, old.params, device=device, dtype=dtype,
+                                      pose=old.initial_pose, hair_hair=old.hair_hair, colliders=old.colliders or None,
+                                      backend=path)
+    else:
+        rest = hanging_groom(head, strands, 32, 0.25, sdf=grid, seed=1)
+        hh = at.HairHair(resolution=resolution) if scene == "every_stage" else None
+        cols = [at.MeshCollider(grid)] if scene == "every_stage" else None
+        sims = {p: at.Simulator(rest, at.Params(), device=device, dtype=dtype, hair_hair=hh, colliders=cols,
+                                backend=p) for p in PATHS}
+    poses = shake_poses(240, 1 / 60, amplitude=0.6, frequency=1.5, device=device, dtype=dtype)
+    return {"sims": sims, "states": {p: s.initial_state() for p, s in sims.items()}, "poses": poses, "k": 0}
+
+
+def _stage_timer(device, acc: dict):
+    @contextlib.contextmanager
+    def timer(name):
+        sync(device)
+        t = time.perf_counter()
+        yield
+        sync(device)
+        acc[name] = acc.get(name, 0.0) + time.perf_counter() - t
+
+    return timer
+
+
+def frame(case: dict, path: str, device, timer=None) -> float:
+    """One frame of one path; returns wall ms (device synchronised)."""
+    sim = case["sims"][path]
+    pose = case["poses"][case["k"] % len(case["poses"])]
+    sync(device)
+    t = time.perf_counter()
+    case["states"][path] = sim.step(case["states"][path], pose, timer=timer)
+    sync(device)
+    return (time.perf_counter() - t) * 1e3
+
+
+def ops_and_memory(case: dict, path: str, device) -> tuple:
+    """(ops dispatched in one frame, peak bytes the torch allocator held beyond the frame's start)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if torch.device(device).type == "cuda" else [])
+    with profile(activities=acts, profile_memory=True) as prof:
+        frame(case, path, device)
+    ops = 0
+    for evt in prof.events():
+        if evt.device_type != torch.autograd.DeviceType.CPU or evt.name.startswith("ams_torch.") or \
+                evt.name.startswith("[memory]") or evt.name.startswith("Profiler"):
+            continue
+        parent = evt.cpu_parent
+        while parent is not None and parent.name.startswith("ams_torch."):
+            parent = parent.cpu_parent  # our record_function labels are not operators
+        if parent is None:
+            ops += 1
+    usage, peak = 0, 0
+    for evt in sorted((e for e in prof.events() if e.name == "[memory]"), key=lambda e: e.time_range.start):
+        usage += evt.cpu_memory_usage if torch.device(device).type == "cpu" else evt.device_memory_usage
+        peak = max(peak, usage)
+    return ops, peak
+
+
+def run_case(scene: str, strands: int, args, head, grid, paths) -> list:
+    device, dtype = torch.device(args.device), getattr(torch, args.dtype)
+    case = build_case(scene, strands, device, dtype, args.resolution, head, grid)
+    s = case["sims"]["native"].model.num_strands
+    n = case["sims"]["native"].model.num_particles
+    for path in paths:  # warm-up: builds/loads kernels, fills the caching allocator
+        frame(case, path, device)
+        frame(case, path, device)
+    times = {p: [] for p in paths}
+    stages = {p: {} for p in paths}
+    load0 = _load()
+    t_case = time.perf_counter()
+    for rep in range(args.reps):
+        for path in paths:
+            acc = {}
+            times[path].append(frame(case, path, device, _stage_timer(device, acc)))
+            for k, v in acc.items():
+                stages[path].setdefault(k, []).append(v * 1e3)
+        case["k"] += 1
+        if time.perf_counter() - t_case > args.case_cap and rep >= 1:
+            break
+    records = []
+    for path in paths:
+        ops, peak = ops_and_memory(case, path, device)
+        base = {"scene": scene, "S": s, "N": n, "device": device.type, "path": path, "ops_per_frame": ops,
+                "peak_bytes_per_particle": peak / (s * n), "reps": len(times[path]), "load_avg": [load0, _load()]}
+        records.append(dict(base, stage="total", median_ms=statistics.median(times[path]), min_ms=min(times[path])))
+        staged = [0.0] * len(times[path])
+        for name in STAGES:
+            vals = stages[path].get(name)
+            if vals:
+                staged = [a + b for a, b in zip(staged, vals)]
+                records.append(dict(base, stage=name, median_ms=statistics.median(vals), min_ms=min(vals)))
+        other = [t - st for t, st in zip(times[path], staged)]
+        records.append(dict(base, stage="other", median_ms=statistics.median(other), min_ms=min(other)))
+        print(f"{scene:12s} S={s:6d} {path:6s} {statistics.median(times[path]):9.2f} ms (min {min(times[path]):.2f}) "
+              f"ops {ops:5d} peak {peak / (s * n):7.1f} B/particle", flush=True)
+    return records
+
+
+def render(records: list, meta: dict, out: Path) -> None:
+    lines = ["# Whole frames: the fused native path against the torch definition", "",
+             f"Machine: {meta['machine']}. Device `{meta['device']}`, {meta['dtype']}. Command: `{meta['command']}` "
+             f"({meta['wall_s'] / 60:.1f} min). 1-minute load average: {meta['load_start']} at the start, "
+             f"{meta['load_end']} at the end. Raw records: [`frame.json`](frame.json).", "",
+             "Frames of both paths timed interleaved in one run; min and median ms/frame; stages measured by the "
+             "step's stage timer (device synchronised); ops = top-level operators dispatched per frame (profiler); "
+             "peak = the torch allocator's peak during a frame over S·N (the state itself excluded: it exists "
+             "before the frame). N = 32, dt = 1/60 s, M = 1, per-length material defaults.", "",
+             "| scene | S | path | ms/frame median | min | dynamics | hair–hair | collisions | other | ops/frame | "
+             "peak B/particle |", "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    by = {}
+    for r in records:
+        by.setdefault((r["scene"], r["S"], r["path"]), {})[r["stage"]] = r
+    for (scene, s, path), st in by.items():
+        tot = st["total"]
+        cell = lambda k: f"{st[k]['median_ms']:.2f}" if k in st else "–"  # noqa: E731
+        lines.append(f"| {scene} | {s:,} | {path} | {tot['median_ms']:.2f} | {tot['min_ms']:.2f} | {cell('dynamics')} | "
+                     f"{cell('hair_hair')} | {cell('collisions')} | {cell('other')} | {tot['ops_per_frame']} | "
+                     f"{tot['peak_bytes_per_particle']:.0f} |")
+    lines += ["", "## Native against torch, same run", "", "| scene | S | torch / native (median) |", "|---|---:|---:|"]
+    for (scene, s, path), st in by.items():
+        if path == "native" and (scene, s, "torch") in by:
+            ratio = by[(scene, s, "torch")]["total"]["median_ms"] / st["total"]["median_ms"]
+            lines.append(f"| {scene} | {s:,} | {ratio:.1f}× |")
+    if meta.get("note"):
+        lines += ["", meta["note"]]
+    (out.parent / (out.name + ".md")).write_text("\n".join(lines) + "\n")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--dtype", default="float32", choices=("float32", "float64"))
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--strands", type=int, nargs="+", default=[250, 1000, 4000, 16000, 100000])
+    ap.add_argument("--scenes", nargs="+", default=["default", "dynamics", "every_stage"])
+    ap.add_argument("--resolution", type=int, default=64, help="hair–hair grid of every_stage")
+    ap.add_argument("--reps", type=int, default=7)
+    ap.add_argument("--case-cap", type=float, default=60.0, help="seconds per case before stopping early")
+    ap.add_argument("--torch-max-strands", type=int, default=16000, help="skip the torch path above this")
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--note", default="")
+    ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks" / "frame"))
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.strands, args.reps, args.scenes = [250, 1000], 2, ["dynamics", "every_stage"]
+    torch.set_num_threads(args.threads)
+    t0 = time.perf_counter()
+    load_start = _load()
+    head = at.default_head(4)
+    grid = SDFGrid.from_mesh(head, resolution=64)
+    records = []
+    for scene in args.scenes:
+        for s in ([1000] if scene == "default" else args.strands):
+            paths = [p for p in PATHS if p == "native" or s <= args.torch_max_strands]
+            records += run_case(scene, s, args, head, grid, paths)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    meta = {"command": ("python scripts/bench_frame.py " + shown_args(argv)).strip(), "machine": machine(args.device),
+            "machine_info": machine_info(args.device), "device": args.device, "dtype": args.dtype,
+            "wall_s": time.perf_counter() - t0, "load_start": load_start, "load_end": _load(), "note": args.note}
+    (out.parent / (out.name + ".json")).write_text(json.dumps({"meta": meta, "records": records}, indent=1))
+    render(records, meta, out)
+    print(f"wrote {out}.md in {meta['wall_s']:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
