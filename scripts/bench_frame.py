@@ -100,14 +100,21 @@ def frame(case: dict, path: str, device, timer=None) -> float:
     return (time.perf_counter() - t) * 1e3
 
 
-def ops_and_memory(case: dict, path: str, device) -> tuple:
-    """(ops dispatched in one frame, peak bytes the torch allocator held beyond the frame's start)."""
+VIEWS = {"aten::reshape", "aten::view", "aten::expand", "aten::expand_as", "aten::unsqueeze", "aten::squeeze",
+         "aten::select", "aten::slice", "aten::permute", "aten::transpose", "aten::t", "aten::as_strided",
+         "aten::alias", "aten::detach", "aten::reshape_as", "aten::view_as", "aten::contiguous", "aten::item",
+         "aten::_local_scalar_dense"}
+
+
+def ops_per_frame(case: dict, path: str, device) -> tuple:
+    """(operators dispatched in one frame, those of them that compute: not views; what launches
+    kernels on a GPU). ``item`` is the divergence guard's read, outside the step."""
     from torch.profiler import ProfilerActivity, profile
 
     acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if torch.device(device).type == "cuda" else [])
-    with profile(activities=acts, profile_memory=True) as prof:
+    with profile(activities=acts) as prof:
         frame(case, path, device)
-    ops = 0
+    ops, computing = 0, 0
     for evt in prof.events():
         if evt.device_type != torch.autograd.DeviceType.CPU or evt.name.startswith("ams_torch.") or \
                 evt.name.startswith("[memory]") or evt.name.startswith("Profiler"):
@@ -117,11 +124,48 @@ def ops_and_memory(case: dict, path: str, device) -> tuple:
             parent = parent.cpu_parent  # our record_function labels are not operators
         if parent is None:
             ops += 1
-    usage, peak = 0, 0
-    for evt in sorted((e for e in prof.events() if e.name == "[memory]"), key=lambda e: e.time_range.start):
-        usage += evt.cpu_memory_usage if torch.device(device).type == "cpu" else evt.device_memory_usage
-        peak = max(peak, usage)
-    return ops, peak
+            computing += evt.name not in VIEWS
+    return ops, computing
+
+
+def _rss(field: str) -> int:
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) * 1024 for line in f if line.startswith(field + ":"))
+
+
+def memory_probe(scene: str, strands: int, path: str, device: str, dtype: str, resolution: int) -> int:
+    """Peak resident memory of one frame beyond what is resident before it (the state, the model,
+    the libraries), bytes: run in a fresh process with large blocks on mmap
+    (MALLOC_MMAP_THRESHOLD_), so freed temporaries leave the resident set; the peak counter is
+    reset just before the frame (/proc/self/clear_refs = 5). CPU only."""
+    torch.set_num_threads(1)
+    head = at.default_head(4)
+    grid = SDFGrid.from_mesh(head, resolution=64)
+    case = build_case(scene, strands, torch.device(device), getattr(torch, dtype), resolution, head, grid)
+    case["sims"] = {path: case["sims"][path]}
+    frame(case, path, device)
+    frame(case, path, device)
+    with open("/proc/self/clear_refs", "w") as f:
+        f.write("5")
+    base = _rss("VmRSS")
+    frame(case, path, device)
+    return _rss("VmHWM") - base
+
+
+def peak_bytes(scene: str, strands: int, path: str, args) -> float:
+    """Run :func:`memory_probe` in a subprocess; NaN where it cannot run (not Linux, or CUDA)."""
+    import subprocess
+
+    if args.device != "cpu" or not os.path.exists("/proc/self/clear_refs"):
+        return float("nan")
+    env = dict(os.environ, MALLOC_MMAP_THRESHOLD_="65536", MALLOC_TRIM_THRESHOLD_="0")
+    cmd = [sys.executable, __file__, "--memory-probe", scene, str(strands), path, "--dtype", args.dtype,
+           "--resolution", str(args.resolution)]
+    out = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=3600)
+    try:
+        return float(out.stdout.strip().splitlines()[-1])
+    except (ValueError, IndexError):
+        return float("nan")
 
 
 def run_case(scene: str, strands: int, args, head, grid, paths) -> list:
@@ -147,9 +191,11 @@ def run_case(scene: str, strands: int, args, head, grid, paths) -> list:
             break
     records = []
     for path in paths:
-        ops, peak = ops_and_memory(case, path, device)
+        ops, computing = ops_per_frame(case, path, device)
+        peak = peak_bytes(scene, strands, path, args) if args.memory else float("nan")
         base = {"scene": scene, "S": s, "N": n, "device": device.type, "path": path, "ops_per_frame": ops,
-                "peak_bytes_per_particle": peak / (s * n), "reps": len(times[path]), "load_avg": [load0, _load()]}
+                "computing_ops_per_frame": computing, "peak_bytes_per_particle": peak / (s * n),
+                "reps": len(times[path]), "load_avg": [load0, _load()]}
         records.append(dict(base, stage="total", median_ms=statistics.median(times[path]), min_ms=min(times[path])))
         staged = [0.0] * len(times[path])
         for name in STAGES:
@@ -160,7 +206,7 @@ def run_case(scene: str, strands: int, args, head, grid, paths) -> list:
         other = [t - st for t, st in zip(times[path], staged)]
         records.append(dict(base, stage="other", median_ms=statistics.median(other), min_ms=min(other)))
         print(f"{scene:12s} S={s:6d} {path:6s} {statistics.median(times[path]):9.2f} ms (min {min(times[path]):.2f}) "
-              f"ops {ops:5d} peak {peak / (s * n):7.1f} B/particle", flush=True)
+              f"ops {ops:5d} ({computing} computing) peak {peak / (s * n):7.1f} B/particle", flush=True)
     return records
 
 
@@ -170,9 +216,11 @@ def render(records: list, meta: dict, out: Path) -> None:
              f"({meta['wall_s'] / 60:.1f} min). 1-minute load average: {meta['load_start']} at the start, "
              f"{meta['load_end']} at the end. Raw records: [`frame.json`](frame.json).", "",
              "Frames of both paths timed interleaved in one run; min and median ms/frame; stages measured by the "
-             "step's stage timer (device synchronised); ops = top-level operators dispatched per frame (profiler); "
-             "peak = the torch allocator's peak during a frame over S·N (the state itself excluded: it exists "
-             "before the frame). N = 32, dt = 1/60 s, M = 1, per-length material defaults.", "",
+             "step's stage timer (device synchronised); ops = top-level operators dispatched per frame (profiler), "
+             "and in brackets those that compute (not views: what launches kernels on a GPU); peak = the peak "
+             "resident memory of a frame beyond what was resident before it (state, model, libraries), over S·N, "
+             "measured in a fresh process with large blocks on mmap. N = 32, dt = 1/60 s, M = 1, per-length "
+             "material defaults.", "",
              "| scene | S | path | ms/frame median | min | dynamics | hair–hair | collisions | other | ops/frame | "
              "peak B/particle |", "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     by = {}
@@ -182,8 +230,8 @@ def render(records: list, meta: dict, out: Path) -> None:
         tot = st["total"]
         cell = lambda k: f"{st[k]['median_ms']:.2f}" if k in st else "–"  # noqa: E731
         lines.append(f"| {scene} | {s:,} | {path} | {tot['median_ms']:.2f} | {tot['min_ms']:.2f} | {cell('dynamics')} | "
-                     f"{cell('hair_hair')} | {cell('collisions')} | {cell('other')} | {tot['ops_per_frame']} | "
-                     f"{tot['peak_bytes_per_particle']:.0f} |")
+                     f"{cell('hair_hair')} | {cell('collisions')} | {cell('other')} | {tot['ops_per_frame']} "
+                     f"({tot['computing_ops_per_frame']}) | {tot['peak_bytes_per_particle']:.0f} |")
     lines += ["", "## Native against torch, same run", "", "| scene | S | torch / native (median) |", "|---|---:|---:|"]
     for (scene, s, path), st in by.items():
         if path == "native" and (scene, s, "torch") in by:
@@ -206,9 +254,15 @@ def main(argv=None) -> int:
     ap.add_argument("--case-cap", type=float, default=60.0, help="seconds per case before stopping early")
     ap.add_argument("--torch-max-strands", type=int, default=16000, help="skip the torch path above this")
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--no-memory", dest="memory", action="store_false", help="skip the peak-memory subprocesses")
+    ap.add_argument("--memory-probe", nargs=3, metavar=("SCENE", "S", "PATH"), help=argparse.SUPPRESS)
     ap.add_argument("--note", default="")
     ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks" / "frame"))
     args = ap.parse_args(argv)
+    if args.memory_probe:
+        scene, strands, path = args.memory_probe
+        print(memory_probe(scene, int(strands), path, args.device, args.dtype, args.resolution))
+        return 0
     if args.quick:
         args.strands, args.reps, args.scenes = [250, 1000], 2, ["dynamics", "every_stage"]
     torch.set_num_threads(args.threads)
