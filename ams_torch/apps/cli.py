@@ -125,7 +125,7 @@ def _head_for_render(scene: dict):
         return None, None, None
     from ams_torch.geometry.mesh import load_mesh
 
-    m = load_mesh(mesh)
+    m = load_mesh(mesh, **{k: head[k] for k in ("scale", "up_axis", "transform") if k in head})
     return m.vertices, m.faces, None
 
 

@@ -127,9 +127,14 @@ class SequenceRenderer:
             self.colour = np.c_[self.colour * np.array([0.9, 0.7, 0.45]), np.full(len(self.pick), 0.85)]
             if self.extent is None:
                 lo, hi = x.reshape(-1, 3).min(0), x.reshape(-1, 3).max(0)
+                for sh in shapes:  # keep the drawn colliders in view
+                    if "center" in sh:
+                        reach = sh.get("radius", 0.0) + 0.5 * sh.get("thickness", 0.0)
+                        lo = np.minimum(lo, np.asarray(sh["center"]) - reach)
+                        hi = np.maximum(hi, np.asarray(sh["center"]) + reach)
                 a, b = _AXES[self.view][:2]
                 c = 0.5 * (lo + hi)
-                half = 0.6 * max(hi[a] - lo[a], hi[b] - lo[b], 0.3)
+                half = 0.55 * max(hi[a] - lo[a], hi[b] - lo[b], 0.3)
                 self.extent = ((c[a] - half, c[a] + half), (c[b] - half, c[b] + half))
         x = x[self.pick]
         a, b, c, sign = _AXES[self.view]
@@ -179,11 +184,11 @@ class SequenceRenderer:
         style = dict(fill=False, edgecolor=(0.2, 0.35, 0.8), linewidth=1.2, zorder=3)
         for sh in shapes:
             kind = sh["type"]
-            if kind in ("sphere", "hollow_sphere"):
+            if kind == "sphere":
                 c = np.asarray(sh["center"], dtype=np.float64)
                 self.ax.add_patch(mpatches.Circle((c[a], c[b]), sh["radius"], **style))
-                if kind == "hollow_sphere":
-                    self.ax.add_patch(mpatches.Circle((c[a], c[b]), sh["radius"] - sh["thickness"], **style))
+            elif kind == "hollow_sphere":
+                self._draw_shell(sh, a, b, style)
             elif kind == "capsule":
                 p, q = np.asarray(sh["a"], dtype=np.float64)[[a, b]], np.asarray(sh["b"], dtype=np.float64)[[a, b]]
                 d = q - p
@@ -191,6 +196,26 @@ class SequenceRenderer:
                 self.ax.add_patch(mpatches.Polygon([p + n, q + n, q - n, p - n], closed=True, **style))
                 for e in (p, q):
                     self.ax.add_patch(mpatches.Circle(tuple(e), sh["radius"], **style))
+
+
+    def _draw_shell(self, sh: dict, a: int, b: int, style: dict) -> None:
+        """A hollow sphere's wall (radius ± thickness/2) as two arcs that leave its opening (the cap
+        beyond ``cut_height`` along ``axis``) open where the opening faces the view sideways."""
+        import matplotlib.patches as mpatches
+
+        c = np.asarray(sh["center"], dtype=np.float64)
+        radius, half = sh["radius"], 0.5 * sh["thickness"]
+        axis, cut = sh.get("axis"), sh.get("cut_height")
+        start, end = 0.0, 360.0
+        if axis is not None and cut is not None:
+            ax2 = np.asarray(axis, dtype=np.float64)[[a, b]]
+            if np.linalg.norm(ax2) > 0.3:  # the opening is seen from the side: leave it open
+                facing = np.degrees(np.arctan2(ax2[1], ax2[0]))
+                opening = np.degrees(np.arccos(np.clip(cut / radius, -1.0, 1.0)))
+                start, end = facing + opening, facing - opening + 360.0
+        for r in (radius - half, radius + half):
+            self.ax.add_patch(mpatches.Arc((c[a], c[b]), 2 * r, 2 * r, theta1=start, theta2=end,
+                                           **{k: v for k, v in style.items() if k != "fill"}))
 
 
 def collider_shapes(specs, rotations, translations) -> list:
@@ -203,8 +228,13 @@ def collider_shapes(specs, rotations, translations) -> list:
         kind = spec["type"]
         if kind in ("sphere", "hollow_sphere"):
             c = r @ np.asarray(spec.get("center", (0.0, 0.0, 0.0)), dtype=np.float64) + t
-            out.append({"type": kind, "center": c, "radius": float(spec.get("radius", 0.1 if kind == "sphere" else 0.2)),
-                        "thickness": float(spec.get("thickness", 0.02))})
+            shape = {"type": kind, "center": c, "radius": float(spec.get("radius", 0.1 if kind == "sphere" else 0.2)),
+                     "thickness": float(spec.get("thickness", 0.02))}
+            if kind == "hollow_sphere":
+                axis = np.asarray(spec.get("axis", (0.0, 1.0, 0.0)), dtype=np.float64)
+                shape["axis"] = r @ (axis / np.linalg.norm(axis))
+                shape["cut_height"] = spec.get("cut_height", 0.1)
+            out.append(shape)
         elif kind == "capsule":
             out.append({"type": "capsule", "a": r @ np.asarray(spec.get("a", (0.0, 0.0, 0.0))) + t,
                         "b": r @ np.asarray(spec.get("b", (0.0, 0.1, 0.0))) + t, "radius": float(spec.get("radius", 0.05))})
@@ -280,6 +310,11 @@ def render_strip(positions, path: str, picks, rotations=None, translations=None,
     a, b = _AXES[r.view][:2]
     sel = positions[list(picks)]
     lo, hi = sel.reshape(-1, 3).min(0), sel.reshape(-1, 3).max(0)
+    shapes = {k: collider_shapes(colliders, collider_rotations[k], collider_translations[k])
+              if len(colliders) and collider_rotations is not None else () for k in picks}
+    for sh in (s for k in picks for s in shapes[k] if "center" in s):  # keep the colliders in view
+        reach = sh.get("radius", 0.0) + 0.5 * sh.get("thickness", 0.0)
+        lo, hi = np.minimum(lo, sh["center"] - reach), np.maximum(hi, sh["center"] + reach)
     c = 0.5 * (lo + hi)
     half = 0.55 * max(hi[a] - lo[a], hi[b] - lo[b], 0.3)
     r.extent = ((c[a] - half, c[a] + half), (c[b] - half, c[b] + half))
@@ -287,8 +322,6 @@ def render_strip(positions, path: str, picks, rotations=None, translations=None,
     for j, k in enumerate(picks):
         rot = None if rotations is None else rotations[k]
         tr = None if translations is None else translations[k]
-        shapes = collider_shapes(colliders, collider_rotations[k], collider_translations[k]) \
-            if len(colliders) and collider_rotations is not None else ()
-        imgs.append(r.draw(positions[k], rot, tr, label=labels[j] if labels else f"frame {k + 1}", shapes=shapes))
+        imgs.append(r.draw(positions[k], rot, tr, label=labels[j] if labels else f"frame {k + 1}", shapes=shapes[k]))
     imageio.imwrite(path, np.concatenate(imgs, axis=1))
     return path
