@@ -162,15 +162,16 @@ def test_spinning_sphere_drags_with_its_surface_velocity():
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_no_penetration_and_no_inward_velocity_analytic(dtype):
+def test_no_penetration_and_no_inward_velocity_analytic(dtype, device):
     gen = torch.Generator().manual_seed(3)
     S, N = 400, 8
-    free = torch.arange(N) >= 2
+    free = (torch.arange(N) >= 2).to(device)
     for col in analytic_colliders(mu=0.4):
+        col = col.to(device)
         pose = random_pose(gen)
-        x = (pose.translation + 0.15 * torch.randn(S, N, 3, generator=gen, dtype=torch.float64)).to(dtype)
-        v = torch.randn(S, N, 3, generator=gen, dtype=torch.float64).to(dtype)
-        pose_d = pose.to(dtype=dtype)
+        x = (pose.translation + 0.15 * torch.randn(S, N, 3, generator=gen, dtype=torch.float64)).to(device, dtype)
+        v = torch.randn(S, N, 3, generator=gen, dtype=torch.float64).to(device, dtype)
+        pose_d = pose.to(device=device, dtype=dtype)
         before = collider_distances(x, [col], [pose_d])[0]
         assert (before[:, 2:] < 0).sum() > 20, type(col).__name__  # the test really has contacts
         x2, v2 = collide(x, v, DT, [col], [pose_d], free=free)
@@ -371,7 +372,7 @@ def test_swept_sphere_pushes_hair_aside():
     assert torch.isfinite(state.x).all()
 
 
-def test_spinning_head_leaves_no_particle_inside(head_collider):
+def test_spinning_head_leaves_no_particle_inside(head_collider, device):
     from ams_torch.grooms.head import hanging_groom
     from ams_torch.sim.params import Params
     from ams_torch.sim.simulator import Simulator
@@ -379,7 +380,8 @@ def test_spinning_head_leaves_no_particle_inside(head_collider):
     grid = head_collider.sdf
     rest = hanging_groom(default_head(), 1000, 32, 0.2, sdf=grid, seed=0)
     params = Params()
-    sim = Simulator(rest, params, colliders=[head_collider])
+    sim = Simulator(rest, params, colliders=[head_collider], device=device)
+    head_collider = sim.colliders[0]  # the simulator's copy, on its device
     state = sim.initial_state()
     omega = 2 * math.pi * 5.0  # 5 rev/s about the vertical axis, for 1 s
     free = ~sim.model.pinned
@@ -387,7 +389,8 @@ def test_spinning_head_leaves_no_particle_inside(head_collider):
     worst, travelled = 0.0, 0.0
     for k in range(frames):
         t = (k + 1) * params.dt
-        pose = Pose.from_rotvec([0.0, omega * t, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, omega, 0.0])
+        pose = Pose.from_rotvec([0.0, omega * t, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, omega, 0.0],
+                                device=device)
         prev = state.x
         state = sim.step(state, pose)
         d = collider_distances(state.x, [head_collider], resolve_world_poses([head_collider], pose))[0]

@@ -19,11 +19,11 @@ def run(sim, state, frames, poses=None):
 
 
 # ----------------------------------------------------------------------------- sag-free (§5)
-def test_sag_free_single_strand_stays_where_grown(capsys):
+def test_sag_free_single_strand_stays_where_grown(capsys, device):
     rest = curly_strand(particles=30, radius=0.02, pitch=0.03)
     drift = {}
     for sag_free in (True, False):
-        sim = at.Simulator(rest, at.Params(sag_free=sag_free), dtype=F64)
+        sim = at.Simulator(rest, at.Params(sag_free=sag_free), dtype=F64, device=device)
         s = run(sim, sim.initial_state(), 120)  # 2 s at 60 fps
         drift[sag_free] = float((s.x - sim.model.rest_positions).norm(dim=-1).max())
     with capsys.disabled():
@@ -33,11 +33,11 @@ def test_sag_free_single_strand_stays_where_grown(capsys):
     assert drift[False] > 10 * max(drift[True], 1e-4)
 
 
-def test_sag_free_groom_stays_where_grown(capsys):
+def test_sag_free_groom_stays_where_grown(capsys, device):
     rest = sphere_groom(1000, 16, seed=1)
     drift = {}
     for sag_free in (True, False):
-        sim = at.Simulator(rest, at.Params(sag_free=sag_free))
+        sim = at.Simulator(rest, at.Params(sag_free=sag_free), device=device)
         s = run(sim, sim.initial_state(), 120)
         drift[sag_free] = float((s.x - sim.model.rest_positions).norm(dim=-1).max())
     with capsys.disabled():
@@ -47,10 +47,10 @@ def test_sag_free_groom_stays_where_grown(capsys):
     assert drift[False] > 1e-3
 
 
-def test_ghosts_sit_above_particles_by_weight_over_stiffness():
+def test_ghosts_sit_above_particles_by_weight_over_stiffness(device):
     rest = curly_strand(particles=8)
     p = at.Params()
-    sim = at.Simulator(rest, p, dtype=F64)
+    sim = at.Simulator(rest, p, dtype=F64, device=device)
     s = sim.initial_state()
     offset = s.ghosts() - s.x
     expected = 9.81 / p.integrity_rate  # m g / κ_I with κ_I = ω_I² m
@@ -67,11 +67,12 @@ def test_sag_free_without_integrity_warns_and_applies_no_offset():
 
 
 # ------------------------------------------------------------------------- head and ghosts (§1)
-def test_roots_follow_the_head_and_get_its_velocity():
+def test_roots_follow_the_head_and_get_its_velocity(device):
     rest = sphere_groom(20, 12, seed=2, dtype=F64)
     p = at.Params(dt=1 / 60)
-    sim = at.Simulator(rest, p, dtype=F64)
-    poses = shake_poses(30, p.dt, amplitude=0.8, frequency=2.0, translation_amplitude=(0.05, 0.02, 0.0), dtype=F64)
+    sim = at.Simulator(rest, p, dtype=F64, device=device)
+    poses = shake_poses(30, p.dt, amplitude=0.8, frequency=2.0, translation_amplitude=(0.05, 0.02, 0.0), dtype=F64,
+                        device=device)
     s = sim.initial_state()
     for pose in poses:
         s = sim.step(s, pose)
@@ -111,13 +112,13 @@ def total_energy(sim, s):
     return float(e)
 
 
-def test_energy_does_not_grow_without_gravity_and_drag():
+def test_energy_does_not_grow_without_gravity_and_drag(device):
     rest = sphere_groom(24, 16, seed=3, dtype=F64)
     p = at.Params(gravity=(0.0, 0.0, 0.0), drag=0.0)
-    sim = at.Simulator(rest, p, dtype=F64)
+    sim = at.Simulator(rest, p, dtype=F64, device=device)
     s = sim.initial_state()
     g = torch.Generator().manual_seed(0)
-    v = 0.3 * torch.randn(s.v.shape, generator=g, dtype=F64)
+    v = (0.3 * torch.randn(s.v.shape, generator=g, dtype=F64)).to(device)
     v[:, :2] = 0
     s = s.replace(v=v)
     energies = [total_energy(sim, s)]
@@ -167,12 +168,12 @@ def test_geometric_stiffness_removes_single_step_energy_gains(capsys):
 # -------------------------------------------------------------------------------- extremes
 @pytest.mark.parametrize("stiffness_ratio", [1e2, 1e4, 1e6, 1e8])
 @pytest.mark.parametrize("dt", [1 / 1000, 1 / 60, 1 / 24])
-def test_extremes_stay_finite_and_inextensible(stiffness_ratio, dt):
+def test_extremes_stay_finite_and_inextensible(stiffness_ratio, dt, device):
     """κ_L/m from 1e2 to 1e8 s⁻² (κ_L = 1e-4 … 1e2 N/m at the default 1e-6 kg), M = 1, under a
     translational shake whose peak head acceleration is 0, 10 g and 50 g."""
     rest = sphere_groom(12, 16, seed=4)
     p = at.Params(material="per_particle", stretch_stiffness=stiffness_ratio * 1e-6, dt=dt, substeps=1)
-    sim = at.Simulator(rest, p)
+    sim = at.Simulator(rest, p, device=device)
     edge = sim.model.edge_rest_length
     frames = max(6, int(round(0.25 / dt)))
     freq = 2.0
@@ -189,22 +190,22 @@ def test_extremes_stay_finite_and_inextensible(stiffness_ratio, dt):
 
 
 # -------------------------------------------------------------------------------- batching
-def test_batched_equals_one_strand_at_a_time():
+def test_batched_equals_one_strand_at_a_time(device):
     rest = sphere_groom(5, 12, seed=5, dtype=F64)
     p = at.Params(substeps=2)
     poses = shake_poses(20, p.dt, amplitude=0.6, frequency=2.0, dtype=F64)
-    sim = at.Simulator(rest, p, dtype=F64)
+    sim = at.Simulator(rest, p, dtype=F64, device=device)
     together = run(sim, sim.initial_state(), 20, poses).x
     for i in range(rest.shape[0]):
-        one = at.Simulator(rest[i:i + 1], p, dtype=F64)
+        one = at.Simulator(rest[i:i + 1], p, dtype=F64, device=device)
         alone = run(one, one.initial_state(), 20, poses).x
         assert (alone[0] - together[i]).abs().max() <= 1e-12
 
 
-def test_scene_batch_equals_separate_runs():
+def test_scene_batch_equals_separate_runs(device):
     rest = sphere_groom(6, 10, seed=6, dtype=F64)
     p = at.Params()
-    sim = at.Simulator(rest, p, dtype=F64)
+    sim = at.Simulator(rest, p, dtype=F64, device=device)
     a = shake_poses(15, p.dt, amplitude=0.5, frequency=2.0, dtype=F64)
     b = shake_poses(15, p.dt, amplitude=0.3, frequency=1.0, axis=(1.0, 0.0, 0.0), dtype=F64)
     stack = lambda pa, pb: at.Pose(*(torch.stack((getattr(pa, f), getattr(pb, f))) for f in  # noqa: E731
@@ -218,12 +219,12 @@ def test_scene_batch_equals_separate_runs():
     assert (s.x[0] - xa).abs().max() <= 1e-12 and (s.x[1] - xb).abs().max() <= 1e-12
 
 
-def test_float32_tracks_float64_on_demo_motion():
+def test_float32_tracks_float64_on_demo_motion(device):
     rest = sphere_groom(200, 32, seed=7, dtype=F64)
     p = at.Params()
     out = {}
     for dtype in (torch.float32, F64):
-        sim = at.Simulator(rest, p, dtype=dtype)
+        sim = at.Simulator(rest, p, dtype=dtype, device=device)
         poses = shake_poses(60, p.dt, dtype=dtype)
         out[dtype] = run(sim, sim.initial_state(), 60, poses).x.double()
     err = (out[torch.float32] - out[F64]).norm(dim=-1).max()

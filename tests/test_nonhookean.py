@@ -52,12 +52,12 @@ def test_tangent_is_psd_and_is_the_jacobian():
             assert torch.allclose(-j, tangent[s, i], atol=1e-12)
 
 
-def test_nonhookean_equals_hookean_below_transition():
+def test_nonhookean_equals_hookean_below_transition(device):
     rest = sphere_groom(20, 12, radius=0.1, length=0.15)
     out = {}
     for model in ("hookean", "nonhookean"):
         p = at.Params(integrity_model=model, integrity_transition=50.0, integrity_break=100.0)
-        sim = at.Simulator(rest, p, dtype=torch.float64)
+        sim = at.Simulator(rest, p, dtype=torch.float64, device=device)
         st = sim.initial_state()
         for pose in shake_poses(10, p.dt, dtype=torch.float64):
             st = sim.step(st, pose)
