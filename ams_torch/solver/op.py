@@ -141,7 +141,7 @@ def solve_banded(blocks: torch.Tensor, rhs: torch.Tensor, check: bool = True) ->
             ``rhs`` broadcast against each other; dtypes are promoted to a common one.
         check: raise ``torch.linalg.LinAlgError`` naming the first strand whose system is not
             SPD (a non-positive pivot), or holds NaN/Inf, instead of returning NaN for it. Costs
-            one ``isfinite`` pass over x and one host synchronisation per call (measured in
+            one ``isfinite`` pass over x, blocks and rhs and one host synchronisation per call (measured in
             docs/benchmarks/solver.md); skipped inside ``torch.compile``; the simulator's hot path
             passes ``check=False`` and relies on its divergence guard.
     Returns:
@@ -169,8 +169,10 @@ def solve_banded(blocks: torch.Tensor, rhs: torch.Tensor, check: bool = True) ->
 
 
 def _check_solution(x: torch.Tensor, blocks: torch.Tensor, rhs: torch.Tensor, batch) -> None:
-    """Raise LinAlgError for the first strand whose solution is not finite (see solve_banded)."""
-    good = torch.isfinite(x.detach()).flatten(1).all(1)
+    """Raise LinAlgError for the first strand whose solution is not finite, or whose system
+    holds NaN/Inf (an Inf on a diagonal can still give a finite, meaningless x); one host sync."""
+    good = torch.isfinite(x.detach()).flatten(1).all(1) & torch.isfinite(blocks.detach()).flatten(1).all(1) \
+        & torch.isfinite(rhs.detach()).flatten(1).all(1)
     if bool(good.all()):
         return
     first = int(torch.nonzero(~good)[0])
