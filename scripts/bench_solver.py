@@ -3,7 +3,10 @@
 For every strand count S, particle count N and dtype, times the same assembled systems
 (the tests' factory, ``tests/test_native_solver.py::strand_system``) with:
 
-    native  ams_torch.solver.op.solve_banded (the registered op; native CPU/CUDA kernel)
+    native  ams_torch.solver.op.solve_banded(check=False) (the registered op; native CPU/CUDA
+            kernel), as the simulator's step calls it
+    checked the same with check=True (the default): plus one isfinite pass over x, blocks and
+            rhs and one host sync, so that a non-SPD or non-finite strand raises LinAlgError
     plain   ams_torch.solver.reference.solve_banded_plain (pure torch block Cholesky)
     dense   torch.linalg.solve on the assembled (S, 3N, 3N) matrices (assembly not timed),
             only where the dense matrices fit in --dense-max-gb
@@ -42,7 +45,7 @@ from ams_torch.solver import build as _native, op as ops  # noqa: E402
 from ams_torch._bench import machine_info, median_ms, shown_args  # noqa: E402
 from ams_torch.solver.reference import banded_to_dense, solve_banded_plain  # noqa: E402
 
-METHODS = ("native", "plain", "dense", "scipy")
+METHODS = ("native", "checked", "plain", "dense", "scipy")
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
@@ -97,7 +100,11 @@ def run(args) -> list[dict]:
 
                 if "native" in args.methods:
                     x_native = ops.solve_banded(blocks, rhs)
-                    record("native", *median_ms(lambda: ops.solve_banded(blocks, rhs), device, args.repeats, args.time_cap))
+                    record("native", *median_ms(lambda: ops.solve_banded(blocks, rhs, check=False), device,
+                                                args.repeats, args.time_cap))
+                if "checked" in args.methods:
+                    record("checked", *median_ms(lambda: ops.solve_banded(blocks, rhs), device, args.repeats,
+                                                 args.time_cap))
                 if "plain" in args.methods:
                     x_plain = solve_banded_plain(blocks, rhs)
                     record("plain", *median_ms(lambda: solve_banded_plain(blocks, rhs), device, args.repeats, args.time_cap))
@@ -140,7 +147,8 @@ def write_markdown(records: list[dict], path: Path, args) -> None:
         f"torch {info.get('torch')}.",
         "",
         "Median wall time per call (ms) of one solve of S strands of N particles (3N unknowns each), "
-        "and how many times slower each method is than `native`. `dense`: torch.linalg.solve on the "
+        "and how many times slower each method is than `native` (`check=False`, as the step calls it). "
+        "`checked`: the default `check=True` (an isfinite pass over x, blocks and rhs, one host sync). `dense`: torch.linalg.solve on the "
         f"assembled matrices (assembly not timed; only where they fit in {args.dense_max_gb} GB). `scipy`: "
         "scipy.linalg.solveh_banded looped over strands (only small S). Blank: not run.",
         "",
@@ -156,13 +164,15 @@ def write_markdown(records: list[dict], path: Path, args) -> None:
         by_key.setdefault((r["dtype"], r["S"], r["N"]), {})[r["method"]] = r["median_ms"]
     for dtype_name in args.dtypes:
         lines += [f"## {dtype_name}", "",
-                  "| S | N | native ms | plain ms | dense ms | scipy ms | plain/native | dense/native | scipy/native |",
-                  "|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+                  "| S | N | native ms | checked ms | plain ms | dense ms | scipy ms | checked/native | plain/native "
+                  "| dense/native | scipy/native |",
+                  "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
         for (dt, s, n), m in sorted(by_key.items(), key=lambda kv: (kv[0][0], kv[0][2], kv[0][1])):
             if dt != dtype_name:
                 continue
             cells = [f"{m[k]:.2f}" if k in m else "" for k in METHODS]
-            ratios = [f"{m[k] / m['native']:.1f}×" if k in m and "native" in m else "" for k in ("plain", "dense", "scipy")]
+            ratios = [f"{m[k] / m['native']:.{2 if k == 'checked' else 1}f}×" if k in m and "native" in m else ""
+                      for k in ("checked", "plain", "dense", "scipy")]
             lines.append(f"| {s} | {n} | " + " | ".join(cells + ratios) + " |")
         lines.append("")
     path.write_text("\n".join(lines))
