@@ -18,6 +18,7 @@ Writes docs/benchmarks/datasets.json and docs/benchmarks/datasets.md.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import shutil
@@ -35,6 +36,8 @@ sys.path.insert(0, str(REPO))
 
 from ams_torch._bench import machine, machine_info, shown_args  # noqa: E402
 from ams_torch.apps.data import HairSequenceDataset  # noqa: E402
+from ams_torch.apps.data.format import (FRAME_DIGESTS, FRAMED, SEQ_PREFIX, array_digest,  # noqa: E402
+                                         sequence_checksum)
 from ams_torch.apps.datagen import generate  # noqa: E402
 from ams_torch.apps.recipe import parse_recipe  # noqa: E402
 
@@ -53,22 +56,41 @@ def bench_recipe(strands: int, particles: int, frames: int, sequences: int, batc
 
 
 def copy_with_storage(src: str, dst: str, precision: str, compression: str) -> None:
-    """Copy a dataset file, rewriting the per-frame arrays with other storage settings."""
+    """Copy a dataset file, rewriting the per-frame arrays (positions, velocities, guide
+    positions) of every sequence with other storage settings. Everything else (header, /mask,
+    /scene, the small arrays) is copied as it is; the rewritten arrays' checksums (per frame,
+    whole array) and the sequence checksum are recomputed, so the copy reads and verifies like a
+    generated file."""
     filters = {} if compression == "none" else {"compression": compression, "shuffle": True}
     dtype = np.float16 if precision == "float16" else np.float32
     with h5py.File(src, "r") as a, h5py.File(dst, "w") as b:
         for k, v in a.attrs.items():
             b.attrs[k] = v
         for name in a:
+            if not name.startswith(SEQ_PREFIX):
+                a.copy(a[name], b, name)
+                continue
             g = b.create_group(name)
             for k, v in a[name].attrs.items():
                 g.attrs[k] = v
+            digests = {}
             for key in a[name]:
+                if key == FRAME_DIGESTS:
+                    continue
                 d = a[name][key]
-                if key in ("positions", "velocities", "guide_positions"):
-                    g.create_dataset(key, data=d[()].astype(dtype), chunks=(1,) + d.shape[1:], **filters)
+                if key in FRAMED:
+                    data = np.ascontiguousarray(d[()].astype(dtype))
+                    out = g.create_dataset(key, data=data, chunks=(1,) + d.shape[1:], fletcher32=True, **filters)
+                    for k, v in d.attrs.items():
+                        out.attrs[k] = v
+                    out.attrs["sha256"] = array_digest([data])
+                    g.create_dataset(f"{FRAME_DIGESTS}/{key}", data=np.stack(
+                        [np.frombuffer(hashlib.sha256(f.tobytes()).digest(), np.uint8) for f in data]))
                 else:
-                    g.create_dataset(key, data=d[()])
+                    a[name].copy(d, g, key)
+                    out = g[key]
+                digests[key] = (out.dtype.str, out.shape, out.attrs["sha256"])
+            g.attrs["checksum"] = sequence_checksum(digests)
 
 
 def read_throughput(folder: str, workers: int, seconds: float, window: int = 8, batch_size: int = 4) -> dict:
