@@ -184,26 +184,26 @@ def test_rigidly_moving_groom_is_unchanged(device, dtype, tol):
     assert (v3 - v).abs().max() <= tol * vscale
 
 
-def test_pinned_particles_are_never_modified():
+def test_pinned_particles_are_never_modified(device):
     torch.manual_seed(1)
-    rest = lattice_strands(k=5, n=6, spacing=0.004)
+    rest = lattice_strands(k=5, n=6, spacing=0.004).to(device)
     grid = HairHair(resolution=16, flip=0.5, detailed_collisions=True, collision_radius=5e-3,
                     target_density=1.0).build(rest, MASS)
     v = torch.randn_like(rest)
-    free = torch.ones(6, dtype=torch.bool)
+    free = torch.ones(6, dtype=torch.bool, device=device)
     free[:2] = False
     x2, v2 = hair_hair_stage(grid, rest, v, MASS, None, DT, free=free)
     assert torch.equal(x2[:, :2], rest[:, :2]) and torch.equal(v2[:, :2], v[:, :2])
     assert (v2[:, 2:] - v[:, 2:]).abs().max() > 1e-3
 
 
-def test_batched_equals_one_scene_at_a_time():
+def test_batched_equals_one_scene_at_a_time(device):
     torch.manual_seed(2)
-    rest = head_groom(80, 10, dtype=torch.float64)
+    rest = head_groom(80, 10, dtype=torch.float64).to(device)
     grid = HairHair(resolution=16, flip=0.7, detailed_collisions=True, collision_radius=4e-3,
                     target_density=0.05).build(rest, MASS)
-    poses = [moving_pose(), Pose.from_rotvec([0.0, 1.0, 0.0], [0.0, 0.1, 0.0], [0.0, 0.0, 1.0], [0.0, 2.0, 0.0],
-                                               dtype=torch.float64)]
+    poses = [moving_pose(device=device), Pose.from_rotvec([0.0, 1.0, 0.0], [0.0, 0.1, 0.0], [0.0, 0.0, 1.0],
+                                                          [0.0, 2.0, 0.0], device=device, dtype=torch.float64)]
     xs = torch.stack([p.to_world(rest + 0.01 * torch.randn_like(rest)) for p in poses])
     vs = torch.randn_like(xs)
     batch = Pose(*(torch.stack([getattr(p, f) for p in poses]) for f in
@@ -270,23 +270,23 @@ def test_pic_smooths_velocities_across_neighbouring_strands():
     assert neighbour_variance(out[0.0]) < 0.5 * neighbour_variance(v)
 
 
-def test_detailed_collisions_match_brute_force():
+def test_detailed_collisions_match_brute_force(device):
     """The spatial hash finds the same pairs as an all-pairs search (ample per-cell capacity)."""
     torch.manual_seed(4)
     s, n = 40, 6
-    x = torch.rand(s, n, 3, dtype=torch.float64) * 0.03
+    x = (torch.rand(s, n, 3, dtype=torch.float64) * 0.03).to(device)
     v = torch.randn_like(x)
-    m = (0.5 + torch.rand(s, n, dtype=torch.float64)) * MASS
+    m = ((0.5 + torch.rand(s, n, dtype=torch.float64)) * MASS).to(device)
     r = 4e-3
     grid = HairHair(resolution=8, detailed_collisions=True, collision_radius=r,
                     collision_max_per_cell=64).build(x, MASS)
-    free = torch.ones(n, dtype=torch.bool)
+    free = torch.ones(n, dtype=torch.bool, device=device)
     free[0] = False
     free_p = free.repeat(s)
     dx, dv = detailed_collisions(grid, x.reshape(1, -1, 3), v.reshape(1, -1, 3), m.reshape(1, -1), free_p)
 
     xf, vf, mf = x.reshape(-1, 3), v.reshape(-1, 3), m.reshape(-1)
-    sid = torch.arange(s).repeat_interleave(n)
+    sid = torch.arange(s, device=device).repeat_interleave(n)
     d = xf[:, None] - xf[None]
     dist = d.norm(dim=-1)
     act = (dist < r) & (dist > 0) & (sid[:, None] != sid[None])
@@ -422,10 +422,10 @@ def asymmetric_squeeze(dtype=torch.float64):
 
 @pytest.mark.parametrize("backend", ["torch", "native"])
 @pytest.mark.parametrize("flip", [1.0, 0.95])
-def test_pressure_conserves_momentum_in_asymmetric_squeeze(backend, flip):
+def test_pressure_conserves_momentum_in_asymmetric_squeeze(backend, flip, device):
     """Σ m Δv = 0 to rounding (float64) with Δu = −∇φ/ρ_f; the earlier Δu = −∇φ fails."""
     from ams_torch.stages.hair_hair.transfer import cell_mass, face_views, g2p_torch, p2g_torch, scene_frame
-    rest, x, v, m = asymmetric_squeeze()
+    rest, x, v, m = (t.to(device) for t in asymmetric_squeeze())
     grid = HairHair(resolution=16, flip=flip).build(rest, MASS)
     x2, v2 = hair_hair_stage(grid, x, v, m, None, DT, backend=backend)
     dv = m[..., None] * (v2 - v)
@@ -440,7 +440,8 @@ def test_pressure_conserves_momentum_in_asymmetric_squeeze(backend, flip):
     faces = p2g_torch(xf, vf, mf, frame, grid.origin, h, r)
     assert float((cell_mass(face_views(faces[..., 0], r)) / h ** 3).max()) > 2 * float(grid.target_density)
     field = _unweighted_pressure_field(faces, grid.target_density, DT, h, r, 50, 0.6, 1.0, pic)
-    _, v_old = g2p_torch(xf, vf, field, frame, grid.origin, torch.ones(8, dtype=torch.bool), DT, h, r, pic)
+    _, v_old = g2p_torch(xf, vf, field, frame, grid.origin, torch.ones(8, dtype=torch.bool, device=device), DT, h, r,
+                         pic)
     dv_old = mf[..., None] * (v_old - vf)
     net_old = float(dv_old.sum((0, 1)).norm() / dv_old.norm(dim=-1).sum())
     assert net_old > 0.05, net_old  # measured 0.15 (a centre-of-mass jump of 21 mm/s)
