@@ -46,7 +46,7 @@ from ams_torch.geometry.pose import Pose
 from ams_torch.geometry.sdf import SDFGrid
 from ams_torch.sim.assembly import assemble_system
 from ams_torch.sim.contact import collisions_world
-from ams_torch.sim.dynamics import frame_dynamics, inextensibility, substep_poses
+from ams_torch.sim.dynamics import frame_dynamics, substep_poses
 from ams_torch.sim.model import Coefficients, Model
 from ams_torch.sim.state import Config, ExternalForce
 from ams_torch.solver import build as _native
@@ -56,7 +56,6 @@ from ams_torch.stages.collide import (
     MeshCollider,
     PlaneCollider,
     SphereCollider,
-    collide,
 )
 
 __all__ = ["NATIVE_DTYPES", "native_frame_available", "native_frame_supported", "native_frame_dynamics",

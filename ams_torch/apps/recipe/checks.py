@@ -8,7 +8,7 @@ import numpy as np
 
 from ams_torch.apps.recipe.samplers import (RecipeError, _fail, check_samplers, first, has_sampler, is_sampler,
                                             key_name, options, put, sites)
-from ams_torch.apps.scene.schema import ABSENT, boolean, check_table, integer, is_number, number, one_of, string
+from ams_torch.apps.scene.checks import ABSENT, boolean, check_table, integer, is_number, number, one_of, string
 
 if TYPE_CHECKING:
     from ams_torch.apps.recipe.core import Recipe

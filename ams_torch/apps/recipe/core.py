@@ -16,7 +16,7 @@ from ams_torch.apps.recipe.checks import (SPLIT_DEFAULTS, SPLITS, STORE_DEFAULTS
                                           motion_common, motion_types)
 from ams_torch.apps.recipe.samplers import RecipeError, _fail, sample
 from ams_torch.apps.scene import SceneError, parse_scene, read_toml
-from ams_torch.apps.scene.schema import is_number
+from ams_torch.apps.scene.checks import is_number
 
 __all__ = ["Recipe", "load_recipe", "parse_recipe"]
 

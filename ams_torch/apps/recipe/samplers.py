@@ -8,7 +8,7 @@ from typing import List
 import numpy as np
 
 from ams_torch.apps.scene import SceneError
-from ams_torch.apps.scene.schema import is_number
+from ams_torch.apps.scene.checks import is_number
 
 __all__ = ["RecipeError", "SAMPLERS", "is_sampler", "sample", "check_samplers", "has_sampler", "sites", "options",
            "first", "put", "key_name"]
