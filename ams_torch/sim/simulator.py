@@ -210,8 +210,10 @@ class Simulator(torch.nn.Module):
             if not isinstance(pose, Pose):
                 raise ValueError(f"pose must be an ams_torch.Pose or None; got {type(pose).__name__}")
             if tuple(pose.batch_shape) not in ((), batch):
+                want = "(3, 3)" + (f" (one pose for every scene) or {batch + (3, 3)}" if batch else
+                                   " (the state holds one scene)")
                 raise ValueError(f"pose has batch shape {tuple(pose.batch_shape)} but the state's scenes are "
-                                 f"{batch}: give rotation (3, 3) or {batch + (3, 3)}")
+                                 f"{batch}: give rotation {want}")
             pose = pose.to(device=self.device, dtype=self.dtype)
         if isinstance(external_force, torch.Tensor):
             try:
