@@ -168,17 +168,32 @@ def solve_banded(blocks: torch.Tensor, rhs: torch.Tensor, check: bool = True) ->
     return x.reshape(batch + (n, 3))
 
 
+def _read_entries_finite(blocks: torch.Tensor) -> torch.Tensor:
+    """(S,) bool: every entry the solver reads is finite.
+
+    Read are the lower triangle of each diagonal block and the blocks ``[i, k]`` with i − k ≥ 0;
+    the other entries are ignored by contract and may hold anything (NaN included).
+    """
+    s, n = blocks.shape[:2]
+    i = torch.arange(n, device=blocks.device).view(n, 1)
+    k = torch.arange(BANDWIDTH + 1, device=blocks.device).view(1, -1)
+    read = (i - k >= 0).view(n, BANDWIDTH + 1, 1, 1).expand(n, BANDWIDTH + 1, 3, 3).clone()
+    read[:, 0] &= torch.ones(3, 3, dtype=torch.bool, device=blocks.device).tril()
+    return (torch.isfinite(blocks.detach()) | ~read).flatten(1).all(1)
+
+
 def _check_solution(x: torch.Tensor, blocks: torch.Tensor, rhs: torch.Tensor, batch) -> None:
     """Raise LinAlgError for the first strand whose solution is not finite, or whose system
-    holds NaN/Inf (an Inf on a diagonal can still give a finite, meaningless x); one host sync."""
-    good = torch.isfinite(x.detach()).flatten(1).all(1) & torch.isfinite(blocks.detach()).flatten(1).all(1) \
-        & torch.isfinite(rhs.detach()).flatten(1).all(1)
+    holds NaN/Inf in an entry the solver reads (an Inf on a diagonal can still give a finite,
+    meaningless x); one host sync."""
+    system_ok = _read_entries_finite(blocks) & torch.isfinite(rhs.detach()).flatten(1).all(1)
+    good = torch.isfinite(x.detach()).flatten(1).all(1) & system_ok
     if bool(good.all()):
         return
     first = int(torch.nonzero(~good)[0])
     where = tuple(int(i) for i in torch.unravel_index(torch.tensor(first), tuple(batch))) if len(batch) else ()
     count = int((~good).sum())
-    if not bool(torch.isfinite(blocks[first]).all()) or not bool(torch.isfinite(rhs[first]).all()):
+    if not bool(system_ok[first]):
         why = "its blocks or right-hand side hold NaN/Inf"
     else:
         why = "its matrix is not symmetric positive definite (a non-positive pivot in the Cholesky factorisation)"
