@@ -10,6 +10,8 @@ import os
 import re
 import tomllib
 
+from pathlib import Path
+
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -126,5 +128,8 @@ def test_random_recipe_tables(raw):
 
 @pytest.mark.parametrize("name", sorted(SCENES))
 def test_shipped_scenes_are_valid_and_idempotent(name):
+    shared = Path(__file__).resolve().parents[2] / "shared" / "assets"
+    if "shared/assets" in (Path(SCENE_DIR) / name).read_text() and not shared.is_dir():
+        pytest.skip(f"{name} reads real assets from ../shared/assets, which is not here")
     scene = parse_scene(SCENES[name], where=name, base=SCENE_DIR)
     assert parse_scene(scene, where=name, base=SCENE_DIR) == scene
