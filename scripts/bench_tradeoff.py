@@ -107,6 +107,11 @@ def main(argv=None) -> None:
             setattr(args, k, v)
         args.joint = {k: tuple(tuple(x) for x in v) for k, v in args.joint.items()}
         args.window = {k: tuple(v) for k, v in args.window.items()}
+        for info in meta["scenes"]:  # the voting rule may have changed since the run: apply today's
+            info["votes"] = choose.votes(info, records, args.budgets)
+            info.pop("votes_fallback", None)
+        if not any(i["votes"] for i in meta["scenes"]):
+            meta["scenes"][0]["votes_fallback"] = True
         write_outputs(out, records, meta, args)
         print(f"rewrote {out / 'tradeoff.md'} and the plots from {out / 'tradeoff.json'}")
         return

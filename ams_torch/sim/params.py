@@ -18,9 +18,9 @@ __all__ = ["Params", "PARAM_PRESETS"]
 PARAM_PRESETS = {
     "fast": {"params": {"substeps": 1},
              "settings": {"particles": 16, "dtype": "float32", "hair_hair_resolution": 32}},
-    "balanced": {"params": {"substeps": 2},
-                 "settings": {"particles": 64, "dtype": "float32", "hair_hair_resolution": 32}},
-    "accurate": {"params": {"substeps": 4},
+    "balanced": {"params": {"substeps": 16},
+                 "settings": {"particles": 32, "dtype": "float32", "hair_hair_resolution": 32}},
+    "accurate": {"params": {"substeps": 16},
                  "settings": {"particles": 64, "dtype": "float32", "hair_hair_resolution": 32}},
 }
 
