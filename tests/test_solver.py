@@ -98,3 +98,20 @@ def test_bad_shapes_raise():
         solve_banded_plain(torch.zeros(2, 5, 3, 3, 3), torch.zeros(2, 5, 3))
     with pytest.raises(ValueError, match="rhs"):
         solve_banded_plain(torch.zeros(2, 5, 4, 3, 3), torch.zeros(2, 4, 3))
+
+
+def test_check_passes_large_finite_values_whose_sum_overflows():
+    """The default check sums x, rhs and the read entries of the blocks (one pass, one sync); when
+    that sum overflows on large but finite values, the strand-by-strand diagnosis finds nothing
+    wrong and no error is raised; a NaN among them is still found and named."""
+    from ams_torch.solver.op import _check_solution
+
+    blocks, rhs = stiff_strand_system(strands=6, n=8)  # float64
+    x = at.solver.solve_banded(blocks, rhs)
+    x[:, :, 0] = 1e308  # finite, but their sum is not
+    assert torch.isfinite(x).all() and not torch.isfinite(x.sum())
+    _check_solution(x, blocks, rhs, torch.Size([6]))  # must not raise
+    bad = blocks.clone()
+    bad[4, 3, 1, 0, 0] = float("nan")
+    with pytest.raises(torch.linalg.LinAlgError, match=r"strand \(4,\) \(1 of 6 failing\): its blocks"):
+        _check_solution(x, bad, rhs, torch.Size([6]))
