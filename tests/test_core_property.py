@@ -174,7 +174,8 @@ def test_solve_banded_broadcasts_blocks_against_many_right_hand_sides(seed, b, n
         torch.testing.assert_close(x[i], solve_banded(blocks, rhs[i]), rtol=0, atol=0)
 
 
-@given(st.integers(0, 2**31 - 1), batch_shapes, st.integers(1, 8), dtypes, st.sampled_from(["indefinite", "nan", "inf"]))
+@given(st.integers(0, 2**31 - 1), batch_shapes, st.integers(1, 8), dtypes,
+       st.sampled_from(["indefinite", "nan", "inf", "-inf"]))
 def test_solve_banded_raises_on_bad_systems_naming_the_strand(seed, batch, n, dtype, kind):
     g = torch.Generator().manual_seed(seed)
     blocks = _random_band(g, batch, n, torch.float64)
@@ -185,12 +186,15 @@ def test_solve_banded_raises_on_bad_systems_naming_the_strand(seed, batch, n, dt
     if kind == "indefinite":
         flat_b[victim] = _random_band(g, (), n, torch.float64, shift_sign=-1.0)
     else:
-        value = float("nan") if kind == "nan" else float("inf")
+        value = float(kind)
         row = int(torch.randint(n, (1,), generator=g))
-        if bool(torch.randint(2, (1,), generator=g)):
-            flat_b[victim, row, 0, 1, 1] = value
+        if bool(torch.randint(2, (1,), generator=g)):  # any entry the solver reads
+            k = int(torch.randint(min(row, 3) + 1, (1,), generator=g))  # A[row, row - k], row - k >= 0
+            r = int(torch.randint(3, (1,), generator=g))
+            c = int(torch.randint(r + 1 if k == 0 else 3, (1,), generator=g))  # lower triangle on the diagonal
+            flat_b[victim, row, k, r, c] = value
         else:
-            flat_r[victim, row, 2] = value
+            flat_r[victim, row, int(torch.randint(3, (1,), generator=g))] = value
     with pytest.raises(torch.linalg.LinAlgError) as err:
         solve_banded(blocks.to(dtype), rhs.to(dtype))
     where = tuple(int(i) for i in np.unravel_index(victim, batch)) if batch else victim
@@ -199,7 +203,7 @@ def test_solve_banded_raises_on_bad_systems_naming_the_strand(seed, batch, n, dt
     # without the check the other strands are untouched, and a NaN or indefinite strand comes
     # back non-finite (an Inf on a diagonal may give a finite x: why the check reads the input)
     x = solve_banded(blocks.to(dtype), rhs.to(dtype), check=False).view(count, n, 3)
-    if kind != "inf":
+    if kind not in ("inf", "-inf"):
         assert not bool(torch.isfinite(x[victim]).all())
     others = [i for i in range(count) if i != victim]
     assert bool(torch.isfinite(x[others]).all())

@@ -141,8 +141,8 @@ def solve_banded(blocks: torch.Tensor, rhs: torch.Tensor, check: bool = True) ->
             ``rhs`` broadcast against each other; dtypes are promoted to a common one.
         check: raise ``torch.linalg.LinAlgError`` naming the first strand whose system is not
             SPD (a non-positive pivot), or holds NaN/Inf, instead of returning NaN for it. Costs
-            one summing pass over x, the read entries of blocks and rhs, and one host
-            synchronisation per call (measured in docs/benchmarks/solver.md); skipped inside ``torch.compile``; the simulator's hot path
+            one sum over x, rhs and A's diagonal, and one host synchronisation per call
+            (measured in docs/benchmarks/solver.md); skipped inside ``torch.compile``; the simulator's hot path
             passes ``check=False`` and relies on its divergence guard.
     Returns:
         x: (..., N, 3) with the broadcast leading dims, e.g. velocities in m/s.
@@ -183,14 +183,15 @@ def _read_entries_finite(blocks: torch.Tensor) -> torch.Tensor:
 
 
 def _all_read_finite(x: torch.Tensor, blocks: torch.Tensor, rhs: torch.Tensor) -> bool:
-    """Whether x, rhs and every entry of ``blocks`` the solver reads are finite: one sum per
-    strided view (NaN and Inf propagate through a sum: Inf − Inf is NaN), one host sync, no copy."""
-    total = x.detach().sum() + rhs.detach().sum()
-    b = blocks.detach()
-    for k in range(1, BANDWIDTH + 1):  # A[i, i-k] for i >= k
-        total = total + b[:, k:, k].sum()
-    for r in range(3):  # the lower triangle of each diagonal block
-        total = total + b[:, :, 0, r, : r + 1].sum()
+    """Whether the solve met no NaN/Inf: one sum of x, rhs and the scalar diagonal of A, one sync.
+
+    A NaN anywhere the solver reads, or an Inf off the diagonal, reaches x through the factor
+    (an Inf below the diagonal makes the next pivot sqrt(a − Inf²) = NaN), and a non-SPD matrix
+    gives a NaN pivot; only a +Inf on A's diagonal can leave x finite (its row of the factor and
+    its unknown become 0), so the diagonal is summed too. NaN and Inf propagate through the sum.
+    """
+    diag = blocks.detach()[:, :, 0].diagonal(dim1=-2, dim2=-1)
+    total = x.detach().sum() + rhs.detach().sum() + diag.sum()
     return bool(torch.isfinite(total))
 
 
