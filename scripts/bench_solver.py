@@ -147,7 +147,7 @@ def write_markdown(records: list[dict], path: Path, args) -> None:
         "",
         "Median wall time per call (ms) of one solve of S strands of N particles (3N unknowns each), "
         "and how many times slower each method is than `native` (`check=False`, as the step calls it). "
-        "`checked`: the default `check=True` (an isfinite pass over x, blocks and rhs, one host sync). `dense`: torch.linalg.solve on the "
+        "`checked`: the default `check=True` (one sum over x, rhs and A's diagonal, then one host sync). `dense`: torch.linalg.solve on the "
         f"assembled matrices (assembly not timed; only where they fit in {args.dense_max_gb} GB). `scipy`: "
         "scipy.linalg.solveh_banded looped over strands (only small S). Blank: not run.",
         "",
