@@ -205,7 +205,8 @@ def _cmd_simulate(args) -> int:
     if not np.isfinite(result["positions"]).all():
         raise ValueError(f"{args.scene}: the simulation produced non-finite positions")
     h5 = write_sequence(os.path.join(args.out, "sequence.h5"), result, scene, run.sim.params, run.rest)
-    print("ms/frame: " + ", ".join(f"{k} {v:.1f}" for k, v in result["ms_per_frame"].items()))
+    print("ms/frame: " + ", ".join(f"{k} {v:.1f}" for k, v in result["ms_per_frame"].items())
+          + f" (after the first frame, which took {result['first_frame_ms']:.0f} ms)")
     print(f"wrote {h5}")
     final = write_final(os.path.join(args.out, "final.npz"), result, run.rest)
     print(f"wrote {final}")
