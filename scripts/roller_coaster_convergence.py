@@ -119,6 +119,10 @@ VARIANTS = {
     "smooth_no_ftl": ({"stages": {"collisions": False, "nonhookean": False}, "params": {"inextensibility": False}}, {},
                       "collisions off, Hookean, no follow-the-leader"),
     "smooth": ({"stages": {"collisions": False, "nonhookean": False}}, {}, "collisions off and Hookean"),
+    "smooth_ftl_positions": ({"stages": {"collisions": False, "nonhookean": False}}, {"ftl_velocity": "none"},
+                             "collisions off, Hookean, FTL moves positions only (no velocity correction)"),
+    "smooth_ftl_damping0": ({"stages": {"collisions": False, "nonhookean": False}, "params": {"ftl_damping": 0.0}},
+                            {}, "collisions off, Hookean, ftl_damping = 0 (plain FTL velocities)"),
 }
 DEFAULT_OPTS = {"plastic": True, "contact_tol": 0.0, "skin": 0.0, "friction": None, "per_substep": (),
                 "frame_ftl": True, "ftl_velocity": "dftl", "ftl_limit": 0.0}
