@@ -61,7 +61,8 @@ MARKER_NAME = "build.json"     # written after a successful build: its inputs an
 #             torch.ops namespace, device type). Every csrc/ folder is on the include path.
 # One backend per op group and device, so that a group that fails to build leaves the others.
 _BACKENDS = {
-    "cpu": ("ams_torch_banded_cpu", ("banded/banded_cpu.cpp",), ("banded/banded_cholesky.h", "banded/banded_simd.h"),
+    "cpu": ("ams_torch_banded_cpu", ("banded/banded_cpu.cpp",),
+            ("banded/banded_cholesky.h", "banded/banded_simd.h", "banded/thread_scratch.h"),
             "ams_torch_cpu", "cpu"),
     "cuda": (
         "ams_torch_banded_cuda",
@@ -81,8 +82,8 @@ _BACKENDS = {
     "frame_cpu": (
         "ams_torch_frame_cpu",
         ("frame/frame_cpu.cpp",),
-        ("banded/banded_cholesky.h", "banded/banded_simd.h", "frame/lanes.h", "frame/ftl.h", "frame/frame.h",
-         "frame/frame_binding.h"),
+        ("banded/banded_cholesky.h", "banded/banded_simd.h", "banded/thread_scratch.h", "frame/lanes.h",
+         "frame/ftl.h", "frame/frame.h", "frame/frame_binding.h"),
         "ams_torch_frame_cpu",
         "cpu",
     ),
@@ -97,8 +98,8 @@ _BACKENDS = {
     "collide_cpu": (
         "ams_torch_collide_cpu",
         ("collide/collide_cpu.cpp",),
-        ("banded/banded_cholesky.h", "banded/banded_simd.h", "frame/lanes.h", "frame/ftl.h", "collide/collide.h",
-         "collide/collide_binding.h"),
+        ("banded/banded_cholesky.h", "banded/banded_simd.h", "banded/thread_scratch.h", "frame/lanes.h",
+         "frame/ftl.h", "collide/collide.h", "collide/collide_binding.h"),
         "ams_torch_collide_cpu",
         "cpu",
     ),

@@ -22,27 +22,10 @@
 
 #include "banded_cholesky.h"
 #include "banded_simd.h"
+#include "thread_scratch.h"
 
 namespace ams_torch {
 namespace banded {
-
-// Per-thread scratch, 64-byte aligned, grown on demand and reused across calls.
-static void* thread_scratch(size_t bytes) {
-  struct Buffer {
-    void* ptr = nullptr;
-    size_t size = 0;
-    ~Buffer() { std::free(ptr); }
-  };
-  thread_local Buffer buf;
-  if (buf.size < bytes) {
-    std::free(buf.ptr);
-    const size_t rounded = (bytes + 63) / 64 * 64;
-    buf.ptr = std::aligned_alloc(64, rounded);
-    TORCH_CHECK(buf.ptr != nullptr, "ams_torch: out of memory for solver scratch (", rounded, " bytes)");
-    buf.size = rounded;
-  }
-  return buf.ptr;
-}
 
 template <class T>
 static void solve_strands(const T* blocks, const T* rhs, T* x, int64_t S, int64_t N) {
@@ -55,7 +38,7 @@ static void solve_strands(const T* blocks, const T* rhs, T* x, int64_t S, int64_
   const int64_t grain = std::max<int64_t>(1, (int64_t(1) << 16) / std::max<int64_t>(1, (E + R) * W));
 
   at::parallel_for(0, groups, grain, [&](int64_t g_begin, int64_t g_end) {
-    T* sa = static_cast<T*>(thread_scratch(size_t(E + R) * W * sizeof(T)));
+    T* sa = static_cast<T*>(ams_torch::thread_scratch(size_t(E + R) * W * sizeof(T), "solver"));
     T* sb = sa + E * W;
     const Lanes<V, T> a{sa, W};
     const Lanes<V, T> b{sb, W};

@@ -31,31 +31,13 @@
 #include "banded_simd.h"
 #include "collide.h"
 #include "collide_binding.h"
+#include "thread_scratch.h"
 
 namespace ams_torch {
 namespace collide {
 namespace {
 
 constexpr const char* kOp = "ams_torch_collide_cpu::collide";
-
-void* thread_scratch(size_t bytes) {
-  struct Buffer {
-    void* ptr = nullptr;
-    size_t size = 0;
-    ~Buffer() { std::free(ptr); }
-  };
-  thread_local Buffer buf;
-  if (buf.size < bytes) {
-    std::free(buf.ptr);
-    buf.ptr = nullptr;
-    buf.size = 0;
-    const size_t rounded = (bytes + 63) / 64 * 64;
-    buf.ptr = std::aligned_alloc(64, rounded);
-    TORCH_CHECK(buf.ptr != nullptr, "ams_torch: out of memory for collision scratch (", rounded, " bytes)");
-    buf.size = rounded;
-  }
-  return buf.ptr;
-}
 
 template <class T>
 void run_collide(const CollideArgs<T>& args, const CollideSettings& cfg, T* xo, T* vo) {
@@ -69,7 +51,7 @@ void run_collide(const CollideArgs<T>& args, const CollideSettings& cfg, T* xo, 
   const int64_t ox = 0, ov = 3 * N, orest = 6 * N, oedge = 9 * N, opin = 10 * N - 1, total = 10 * N;
   const int64_t groups = (S + W - 1) / W;
   at::parallel_for(0, B * groups, 1, [&](int64_t t_begin, int64_t t_end) {
-    T* sc = static_cast<T*>(thread_scratch(size_t(total * W) * sizeof(T)));
+    T* sc = static_cast<T*>(ams_torch::thread_scratch(size_t(total * W) * sizeof(T), "collision"));
     const Lanes<V, T> x{sc + ox * W, W}, v{sc + ov * W, W}, rest{sc + orest * W, W}, edge{sc + oedge * W, W};
     for (int64_t task = t_begin; task < t_end; ++task) {
       const int64_t b = task / groups, s0 = (task % groups) * W;

@@ -24,32 +24,13 @@
 #include "banded_simd.h"
 #include "frame.h"
 #include "frame_binding.h"
+#include "thread_scratch.h"
 
 namespace ams_torch {
 namespace frame {
 namespace {
 
 constexpr const char* kOp = "ams_torch_frame_cpu::frame";
-
-// Per-thread scratch, 64-byte aligned, grown on demand and reused across calls.
-void* thread_scratch(size_t bytes) {
-  struct Buffer {
-    void* ptr = nullptr;
-    size_t size = 0;
-    ~Buffer() { std::free(ptr); }
-  };
-  thread_local Buffer buf;
-  if (buf.size < bytes) {
-    std::free(buf.ptr);
-    buf.ptr = nullptr;
-    buf.size = 0;
-    const size_t rounded = (bytes + 63) / 64 * 64;
-    buf.ptr = std::aligned_alloc(64, rounded);
-    TORCH_CHECK(buf.ptr != nullptr, "ams_torch: out of memory for frame scratch (", rounded, " bytes)");
-    buf.size = rounded;
-  }
-  return buf.ptr;
-}
 
 // Offsets (in values per lane) of the arrays of one strand in the scratch.
 struct Layout {
@@ -116,7 +97,7 @@ void run_frame(const FrameArgs<T>& args, const FrameSettings& cfg, int64_t assem
   const bool has_ext = args.external_force != nullptr;
 
   at::parallel_for(0, B * groups, 1, [&](int64_t t_begin, int64_t t_end) {
-    T* sc = static_cast<T*>(thread_scratch(size_t(lay.total * W) * sizeof(T)));
+    T* sc = static_cast<T*>(ams_torch::thread_scratch(size_t(lay.total * W) * sizeof(T), "frame"));
     auto view = [&](int64_t offset) { return Lanes<V, T>{sc + offset * W, W}; };
     Strand<V, T> st;
     st.n = N;
