@@ -13,7 +13,8 @@ import torch
 from ams_torch.geometry.pose import Pose, axis_angle_to_matrix
 from ams_torch.grooms.simple import curly_strand, sphere_groom, wisp
 
-__all__ = ["sphere_groom", "curly_strand", "wisp", "shake_poses", "shape_deviation", "at_material_points"]
+__all__ = ["sphere_groom", "curly_strand", "wisp", "shake_poses", "shape_deviation", "at_material_points",
+           "total_energy"]
 
 
 def shake_poses(frames: int, dt: float, amplitude: float = 0.6, frequency: float = 1.5,
@@ -77,3 +78,31 @@ def at_material_points(rest: torch.Tensor, x: torch.Tensor, points: int = 33) ->
     gather = lambda i: torch.gather(x, -2, i[..., None].expand(lead + i.shape + (3,)))  # noqa: E731
     x0, x1 = gather(idx - 1), gather(idx)
     return x0 + t.to(x.dtype) * (x1 - x0)
+
+
+def total_energy(sim, state) -> torch.Tensor:
+    """Conservative energy of a state, J: () tensor, summed over strands.
+
+    Kinetic ½ m |v|² plus the spring potentials ½ κ (|x_{i+k} − x_i| − l_k)² of the edge (k = 1),
+    bend (k = 2) and torsion (k = 3) springs, the integrity springs ½ κ_I |y − x|² to the ghosts
+    y, and the angular couple ½ κ_α |e| θ² (θ the angle between edge e and its ghost edge), with
+    the simulator's per-segment coefficients. ``state.x``, ``state.v``: (S, N, 3) m, m/s (one
+    scene; no batch dims). The energy that gravity, drag, inextensibility, contact and the
+    non-Hookean law add or remove is not in it: compare it across steps without them.
+    """
+    from ams_torch.sim.model import coefficients
+
+    m = sim.model
+    c = coefficients(m)
+    x, v = state.x, state.v
+    e = 0.5 * (c.mass * (v * v).sum(-1)).sum()
+    for k, kappa in ((1, c.edge), (2, c.bend), (3, c.torsion)):
+        length = (x[:, k:] - x[:, :-k]).norm(dim=-1)
+        e = e + 0.5 * (kappa * (length - m.rest_lengths[k - 1]) ** 2).sum()
+    y = state.ghosts()
+    e = e + 0.5 * (c.integrity * ((y - x) ** 2).sum(-1)).sum()
+    ed = x[:, 1:] - x[:, :-1]
+    g = y[:, 1:] - y[:, :-1]
+    cos = (ed * g).sum(-1) / (ed.norm(dim=-1) * g.norm(dim=-1))
+    theta = torch.acos(cos.clamp(-1, 1))
+    return e + 0.5 * (c.angular * ed.norm(dim=-1) * theta ** 2).sum()

@@ -5,8 +5,8 @@ import pytest
 import torch
 
 import ams_torch as at
-from ams_torch.sim.model import coefficients
 from ams_torch.sim.inextensibility import max_stretch
+from ams_torch import testing
 from ams_torch.testing import curly_strand, shake_poses, sphere_groom, wisp
 
 F64 = torch.float64
@@ -94,22 +94,8 @@ def test_pose_without_velocity_gets_velocity_from_motion():
 
 
 # ---------------------------------------------------------------------------------- energy
-def total_energy(sim, s):
-    """Kinetic + spring + integrity + angular (couple) potential energy, J (per-term coefficients)."""
-    m = sim.model
-    c = coefficients(m)
-    e = 0.5 * (c.mass * (s.v * s.v).sum(-1)).sum()
-    for k, kappa in ((1, c.edge), (2, c.bend), (3, c.torsion)):
-        length = (s.x[:, k:] - s.x[:, :-k]).norm(dim=-1)
-        e = e + 0.5 * (kappa * (length - m.rest_lengths[k - 1]) ** 2).sum()
-    y = s.ghosts()
-    e = e + 0.5 * (c.integrity * ((y - s.x) ** 2).sum(-1)).sum()
-    ed = s.x[:, 1:] - s.x[:, :-1]
-    g = y[:, 1:] - y[:, :-1]
-    cos = (ed * g).sum(-1) / (ed.norm(dim=-1) * g.norm(dim=-1))
-    theta = torch.acos(cos.clamp(-1, 1))
-    e = e + 0.5 * (c.angular * ed.norm(dim=-1) * theta ** 2).sum()
-    return float(e)
+def total_energy(sim, s) -> float:
+    return float(testing.total_energy(sim, s))
 
 
 def test_energy_does_not_grow_without_gravity_and_drag(device):

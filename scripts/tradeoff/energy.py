@@ -7,7 +7,7 @@ is not ½κd², and its plastic yield moves the ghosts), float64. The state is t
 frame: the head's pose is kept and its velocity set to zero, the hair's velocities are its
 velocities relative to the head's rigid motion (pinned particles: zero). What is left is
 conservative: its total energy (kinetic + spring + integrity + angular, as
-``tests/test_core.py::total_energy``) can only fall or stay in an exact step, and any rise is
+``ams_torch.testing.total_energy``) can only fall or stay in an exact step, and any rise is
 the frozen-direction linearisation's.
 """
 from __future__ import annotations
@@ -15,27 +15,9 @@ from __future__ import annotations
 import torch
 
 import ams_torch as at
-from ams_torch.sim.model import coefficients
+from ams_torch.testing import total_energy
 
 F64 = torch.float64
-
-
-def total_energy(sim: at.Simulator, s) -> torch.Tensor:
-    """Kinetic + spring (edge, bend, torsion) + integrity + angular (couple) energy, J, summed over
-    strands (float64; the scene batch dims are not supported)."""
-    m = sim.model
-    c = coefficients(m)
-    e = 0.5 * (c.mass * (s.v * s.v).sum(-1)).sum()
-    for k, kappa in ((1, c.edge), (2, c.bend), (3, c.torsion)):
-        length = (s.x[:, k:] - s.x[:, :-k]).norm(dim=-1)
-        e = e + 0.5 * (kappa * (length - m.rest_lengths[k - 1]) ** 2).sum()
-    y = s.ghosts()
-    e = e + 0.5 * (c.integrity * ((y - s.x) ** 2).sum(-1)).sum()
-    ed = s.x[:, 1:] - s.x[:, :-1]
-    g = y[:, 1:] - y[:, :-1]
-    cos = (ed * g).sum(-1) / (ed.norm(dim=-1) * g.norm(dim=-1))
-    theta = torch.acos(cos.clamp(-1, 1))
-    return e + 0.5 * (c.angular * ed.norm(dim=-1) * theta ** 2).sum()
 
 
 class EnergyProbe:

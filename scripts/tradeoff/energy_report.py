@@ -67,7 +67,7 @@ def energy_section(records, infos, chosen) -> list[str]:
          "- **energy**: from every frame's state of the run (with the option off), one conservative probe step "
          "(`scripts/tradeoff/energy.py`: the head held still, the hair's velocities relative to it, no gravity, drag, "
          "inextensibility, contact or hair–hair, Hookean integrity, float64; total energy = kinetic + spring + "
-         "integrity + angular as `tests/test_core.py::total_energy`), taken with the option off and on from the same "
+         "integrity + angular as `ams_torch.testing.total_energy`), taken with the option off and on from the same "
          "state: the largest one-step relative gain (E₁ − E₀)/E₀ over the frames, and the share of frames that gain "
          f"(> {GAIN_TOL:g}).", "",
          "| scene | setting | RMS off → on (mm) | native ms off → on | torch ms off → on | largest one-step gain "
