@@ -14,3 +14,28 @@ DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 @pytest.fixture(params=DEVICES)
 def device(request):
     return torch.device(request.param)
+
+
+def built_native(kind: str):
+    """The torch.ops namespace of native backend ``kind`` ("frame_cpu", "collide_cpu", "grid_cpu"),
+    built or loaded from the cache: skips when AMS_TORCH_NATIVE=0, fails naming the build error
+    when it did not build (a CPU build is required wherever the tests run)."""
+    from ams_torch.solver import build
+
+    if not build.native_enabled():
+        pytest.skip("AMS_TORCH_NATIVE=0: native kernels disabled")
+    ns = build.native_ops(kind)
+    assert ns is not None, f"native {kind} kernels failed to build: {build.native_status()[kind]['reason']}"
+    return ns
+
+
+def load_script(name: str):
+    """Import ``scripts/<name>.py`` as a module (the scripts are not a package)."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod

@@ -2,6 +2,7 @@
 import numpy as np
 import pytest
 import torch
+from conftest import load_script
 
 import ams_torch as at
 from ams_torch.geometry.pose import axis_angle_to_matrix
@@ -143,7 +144,6 @@ def test_penetration_and_jitter():
 
 
 # -- data, upsampler, training --------------------------------------------------------------
-import importlib.util  # noqa: E402
 import json  # noqa: E402
 import os  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -157,10 +157,7 @@ _ROOT = Path(__file__).resolve().parents[1]
 
 
 def _train_module():
-    spec = importlib.util.spec_from_file_location("train_upsampler", _ROOT / "scripts" / "train_upsampler.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("train_upsampler")
 
 
 @pytest.fixture(scope="module")
@@ -246,9 +243,7 @@ def test_ddp_two_processes_match_one(tiny_data, tmp_path):
 
 
 def test_evaluate_baselines_smoke(tmp_path):
-    spec = importlib.util.spec_from_file_location("evaluate_baselines", _ROOT / "scripts" / "evaluate_baselines.py")
-    ev = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(ev)
+    ev = load_script("evaluate_baselines")
     res = ev.main(["--strands", "96", "--particles", "8", "--guide-counts", "8,32,4096", "--train-sequences", "2",
                    "--train-frames", "6", "--frames", "6", "--steps", "5", "--batch", "128", "--threads", "0",
                    "--work", str(tmp_path / "w"), "--docs", str(tmp_path / "docs")])

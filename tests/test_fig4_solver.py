@@ -1,23 +1,18 @@
 """The explicit-inverse block LU of ``scripts/fig4_solver_precision.py`` (the paper's two-sweep
 solver, written for the Fig. 4 comparison in docs/stability_fig4.md): it is a correct solver, and
 on a stiff float32 strand system its backward error is far above ours (the banded Cholesky)."""
-import importlib.util
-from pathlib import Path
 
 import pytest
 import torch
+from conftest import load_script
 
 from ams_torch.solver.reference import banded_matvec, banded_to_dense
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "fig4_solver_precision.py"
 
 
 @pytest.fixture(scope="module")
 def fig4():
-    spec = importlib.util.spec_from_file_location("fig4_solver_precision", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("fig4_solver_precision")
 
 
 def random_banded_spd(strands: int, n: int, dtype=torch.float64, seed: int = 0) -> torch.Tensor:

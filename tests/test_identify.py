@@ -1,26 +1,21 @@
 """Parameter identification through rollouts (``scripts/identify.py``): the script's functions
 recover two material fields of a tiny groom, and the gradient of a rollout loss matches finite
 differences, with and without per-frame checkpointing."""
-import importlib.util
 import time
-from pathlib import Path
 
 import pytest
 import torch
+from conftest import load_script
 
 import ams_torch as at
 from ams_torch.testing import sphere_groom
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "identify.py"
 F64 = torch.float64
 
 
 @pytest.fixture(scope="module")
 def identify():
-    spec = importlib.util.spec_from_file_location("identify", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("identify")
 
 
 def tiny_case(identify, frames: int):

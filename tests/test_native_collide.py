@@ -21,6 +21,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import built_native
 
 import ams_torch
 from ams_torch import testing
@@ -48,11 +49,7 @@ EPS32 = torch.finfo(F32).eps
 @pytest.fixture(scope="session")
 def native_cpu():
     """The native CPU collision namespace, built (or loaded from the cache) once per session."""
-    if not _native.native_enabled():
-        pytest.skip("AMS_TORCH_NATIVE=0: native kernels disabled")
-    ns = _native.native_ops("collide_cpu")
-    assert ns is not None, f"native collision kernel failed to build: {_native.native_status()['collide_cpu']['reason']}"
-    return ns
+    return built_native("collide_cpu")
 
 
 def _ball_grid(center, radius, lower, upper, resolution=20):

@@ -27,13 +27,13 @@ from types import SimpleNamespace
 
 import pytest
 import torch
+from conftest import built_native
 
 import ams_torch
 from ams_torch import testing
 from ams_torch.geometry.pose import Pose
 from ams_torch.sim import native
-from ams_torch.sim.assembly import assemble_system
-from ams_torch.sim.dynamics import frame_dynamics, substep_poses
+from ams_torch.sim.dynamics import frame_dynamics, substep_system
 from ams_torch.sim.model import coefficients
 from ams_torch.sim.step import resolve_pose
 from ams_torch.solver import build as _native
@@ -51,11 +51,7 @@ EPS32 = torch.finfo(F32).eps
 @pytest.fixture(scope="session")
 def native_cpu():
     """The native CPU frame namespace, built (or loaded from the cache) once per session."""
-    if not _native.native_enabled():
-        pytest.skip("AMS_TORCH_NATIVE=0: native kernels disabled")
-    ns = _native.native_ops("frame_cpu")
-    assert ns is not None, f"native frame kernel failed to build: {_native.native_status()['frame_cpu']['reason']}"
-    return ns
+    return built_native("frame_cpu")
 
 
 def _native_ns(device: str):
@@ -125,15 +121,8 @@ def frame_args(sim, state, pose1, coeffs=None, config=None, hermite=True, extern
 def torch_system(model, coeffs, config, x, v, ghost_rest, sag_offset, pose0, pose1, hermite, k,
                  external_force=None):
     """Substep k's system as frame_dynamics assembles it (the definition), at the state (x, v)."""
-    h = config.dt / config.substeps
-    poses = substep_poses(pose0, pose1, hermite, config.substeps, config.dt)
-    pa, pb = poses[k], poses[k + 1]
-    y_a = pa.to_world(ghost_rest)
-    w = (pb.to_world(ghost_rest) - y_a) / h
-    target = pb.to_world(model.rest_positions.expand(x.shape))
-    pin_v = torch.where(model.pinned[..., None], (target - x) / h, torch.zeros_like(x))
-    offset = pa.rotate(sag_offset) if config.nonhookean else None
-    return assemble_system(model, coeffs, config, x, v, y_a, w, pin_v, h, external_force, offset)
+    return substep_system(model, coeffs, config, x, v, ghost_rest, sag_offset, pose0, pose1, hermite, k,
+                          external_force)
 
 
 def native_system(ns, model, coeffs, config, x, v, ghost_rest, sag_offset, pose0, pose1, hermite, k,

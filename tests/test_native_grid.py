@@ -28,6 +28,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import built_native
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from ams_torch.geometry.pose import Pose
@@ -63,11 +64,7 @@ def one_cpu_thread():
 @pytest.fixture(scope="session")
 def native():
     """The native CPU grid namespace, built (or loaded from the cache) once per session."""
-    if not _native.native_enabled():
-        pytest.skip("AMS_TORCH_NATIVE=0: native kernels disabled")
-    ns = _native.native_ops("grid_cpu")
-    assert ns is not None, f"native grid kernels failed to build: {_native.native_status()['grid_cpu']['reason']}"
-    return ns
+    return built_native("grid_cpu")
 
 
 def _namespace(device: str):
