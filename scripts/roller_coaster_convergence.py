@@ -72,7 +72,7 @@ from ams_torch.apps.scene import build, load_scene  # noqa: E402
 import importlib  # noqa: E402
 step_mod = importlib.import_module("ams_torch.sim.step")
 dynamics_mod = importlib.import_module("ams_torch.sim.dynamics")
-from ams_torch.sim.dynamics import frame_dynamics, inextensibility, substep_poses, _external  # noqa: E402
+from ams_torch.sim.dynamics import frame_dynamics, inextensibility, substep_poses, substep_targets, _external  # noqa: E402
 from ams_torch.sim.assembly import assemble_system  # noqa: E402
 from ams_torch.sim.forces import safe_normalize  # noqa: E402
 from ams_torch.sim.model import coefficients  # noqa: E402
@@ -231,7 +231,6 @@ def dynamics_per_substep(model, coeffs, config, state, pose0, pose1, hermite, co
     x, v, ghost_rest, sag_offset = state.x, state.v, state.ghost_rest, state.sag_offset
     time_ = state.time if control.time is None else control.time
     pinned = model.pinned[..., None]
-    rest = model.rest_positions.expand(x.shape)
     poses = substep_poses(pose0, pose1, hermite, m_sub, dt)
     y_a = poses[0].to_world(ghost_rest)
     nonhookean = config.nonhookean
@@ -239,10 +238,7 @@ def dynamics_per_substep(model, coeffs, config, state, pose0, pose1, hermite, co
     cols = list(model.colliders)
     for s in range(m_sub):
         pb = poses[s + 1]
-        y_b = pb.to_world(ghost_rest)
-        w = (y_b - y_a) / h
-        target = pb.to_world(rest)
-        pin_v = torch.where(pinned, (target - x) / h, torch.zeros_like(x))
+        y_b, w, target, pin_v = substep_targets(model, x, ghost_rest, y_a, pb, h)
         f_ext = _external(control.external_force, x, v, time_ + s * h)
         blocks, rhs = assemble_system(model, coeffs, config, x, v, y_a, w, pin_v, h, f_ext, offset)
         v = solve_banded(blocks, rhs, check=False)

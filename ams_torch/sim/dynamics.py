@@ -23,7 +23,7 @@ from ams_torch.sim.model import Coefficients, Model
 from ams_torch.sim.state import Config, ExternalForce
 from ams_torch.solver.op import solve_banded
 
-__all__ = ["frame_dynamics", "inextensibility", "substep_poses"]
+__all__ = ["frame_dynamics", "inextensibility", "substep_poses", "substep_system", "substep_targets"]
 
 
 def substep_poses(pose0: Pose, pose1: Pose, hermite: bool, substeps: int, dt) -> list:
@@ -52,6 +52,36 @@ def inextensibility(model: Model, config: Config, x: torch.Tensor, v: torch.Tens
         return follow_the_leader(x, v, model.edge_rest_length, model.pinned, dt, config.ftl_damping, fallback)
 
 
+def substep_targets(model: Model, x: torch.Tensor, ghost_rest: torch.Tensor, y_a: torch.Tensor, pose_b: Pose,
+                    h: float) -> tuple:
+    """What a substep of length h (s) drives towards, given the ghosts y_a (..., S, N, 3) m at its
+    start and the head pose ``pose_b`` at its end: the ghosts y_b there, their velocity
+    w = (y_b − y_a)/h (m/s), the pinned particles' targets (the rest shape carried by pose_b, m)
+    and the velocity pin_v = (target − x)/h that takes them there (m/s; 0 for free particles).
+    x, ghost_rest: (..., S, N, 3) m. Returns (y_b, w, target, pin_v), each (..., S, N, 3)."""
+    y_b = pose_b.to_world(ghost_rest)
+    w = (y_b - y_a) / h
+    target = pose_b.to_world(model.rest_positions.expand(x.shape))
+    pin_v = torch.where(model.pinned[..., None], (target - x) / h, torch.zeros_like(x))
+    return y_b, w, target, pin_v
+
+
+def substep_system(model: Model, coeffs: Coefficients, config: Config, x: torch.Tensor, v: torch.Tensor,
+                   ghost_rest: torch.Tensor, sag_offset: torch.Tensor, pose0: Pose, pose1: Pose, hermite: bool,
+                   k: int, external_force=None) -> tuple:
+    """Substep k's (0 ≤ k < M) system exactly as :func:`frame_dynamics` assembles it, at the state
+    (x, v) given (the parity tests' reference for the native assembly). Arguments as
+    :func:`frame_dynamics`; ``external_force``: a (..., S, N, 3) N tensor or None. Returns blocks
+    (..., S, N, 4, 3, 3) kg and rhs (..., S, N, 3) kg·m/s."""
+    h = config.dt / config.substeps
+    poses = substep_poses(pose0, pose1, hermite, config.substeps, config.dt)
+    pa, pb = poses[k], poses[k + 1]
+    y_a = pa.to_world(ghost_rest)
+    _, w, _, pin_v = substep_targets(model, x, ghost_rest, y_a, pb, h)
+    offset = pa.rotate(sag_offset) if config.nonhookean else None
+    return assemble_system(model, coeffs, config, x, v, y_a, w, pin_v, h, external_force, offset)
+
+
 def frame_dynamics(model: Model, coeffs: Coefficients, config: Config, x: torch.Tensor, v: torch.Tensor,
                    ghost_rest: torch.Tensor, sag_offset: torch.Tensor, pose0: Pose, pose1: Pose, hermite: bool,
                    time: torch.Tensor, external_force: ExternalForce = None) -> tuple:
@@ -73,17 +103,13 @@ def frame_dynamics(model: Model, coeffs: Coefficients, config: Config, x: torch.
     m_sub = config.substeps
     h = dt / m_sub
     pinned = model.pinned[..., None]  # (S, N, 1)
-    rest = model.rest_positions.expand(x.shape)
     poses = substep_poses(pose0, pose1, hermite, m_sub, dt)
     y_a = poses[0].to_world(ghost_rest)
     nonhookean = config.nonhookean
     offset = poses[0].rotate(sag_offset) if nonhookean else None
     for s in range(m_sub):
         pb = poses[s + 1]
-        y_b = pb.to_world(ghost_rest)
-        w = (y_b - y_a) / h
-        target = pb.to_world(rest)
-        pin_v = torch.where(pinned, (target - x) / h, torch.zeros_like(x))
+        y_b, w, target, pin_v = substep_targets(model, x, ghost_rest, y_a, pb, h)
         f_ext = _external(external_force, x, v, time + s * h)
         blocks, rhs = assemble_system(model, coeffs, config, x, v, y_a, w, pin_v, h, f_ext, offset)
         with record_function("ams_torch.solve"):

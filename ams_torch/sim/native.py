@@ -44,9 +44,8 @@ import torch
 
 from ams_torch.geometry.pose import Pose
 from ams_torch.geometry.sdf import SDFGrid
-from ams_torch.sim.assembly import assemble_system
 from ams_torch.sim.contact import collisions_world
-from ams_torch.sim.dynamics import frame_dynamics, substep_poses
+from ams_torch.sim.dynamics import frame_dynamics, substep_system
 from ams_torch.sim.model import Coefficients, Model
 from ams_torch.sim.state import Config, ExternalForce
 from ams_torch.solver import build as _native
@@ -155,15 +154,8 @@ def _assembly_torch(state, external_force, model, poses, *settings_and_substep):
     *settings, k = settings_and_substep
     mview, coeffs, config, pose0, pose1 = _rebuild(state, external_force, model, poses, *settings)
     x, v, ghost_rest, sag_offset = state
-    h = config.dt / config.substeps
-    poses_k = substep_poses(pose0, pose1, settings[-1], config.substeps, config.dt)
-    pa, pb = poses_k[k], poses_k[k + 1]
-    y_a = pa.to_world(ghost_rest)
-    w = (pb.to_world(ghost_rest) - y_a) / h
-    target = pb.to_world(mview.rest_positions.expand(x.shape))
-    pin_v = torch.where(mview.pinned[..., None], (target - x) / h, torch.zeros_like(x))
-    offset = pa.rotate(sag_offset) if config.nonhookean else None
-    return assemble_system(mview, coeffs, config, x, v, y_a, w, pin_v, h, external_force, offset)
+    return substep_system(mview, coeffs, config, x, v, ghost_rest, sag_offset, pose0, pose1, settings[-1], k,
+                          external_force)
 
 
 def _namespace(x: torch.Tensor, tensors) -> Optional[object]:
