@@ -63,6 +63,7 @@ def simulate(run: BuiltScene, frames: Optional[int] = None, progress: bool = Fal
 
         it = tqdm(it, desc=f"simulating {scene['name']}", unit="frame")
     wall = 0.0
+    first_ms, first = 0.0, (0.0, {})
     for k in it:
         if trim is not None and k + 1 == trim["frame"]:
             t0 = time.perf_counter()
