@@ -23,6 +23,7 @@ from ams_torch.geometry.pose import Pose
 from ams_torch.sim import forces
 from ams_torch.sim.contact import collisions_world
 from ams_torch.sim.dynamics import frame_dynamics
+from ams_torch.sim.finish import native_finish, pin_and_speed
 from ams_torch.sim.native import native_collisions, native_frame_dynamics
 from ams_torch.sim.model import Coefficients, Model, coefficients
 from ams_torch.sim.state import Config, Control, State
@@ -94,14 +95,15 @@ def _nonfinite(*tensors) -> torch.Tensor:
     return ~torch.isfinite(total)
 
 
-def _finish(model: Model, config: Config, state: State, control: Control, x, v, pose: Pose) -> tuple:
+def _finish(model: Model, config: Config, state: State, control: Control, x, v, pose: Pose,
+            native: bool = False) -> tuple:
     """The end of a frame: pinned particles take the head's rigid velocity, and the divergence
-    flag is updated (device-side). Returns (v, diverged_frame, diverged_input)."""
-    head = pose.velocity_at(x)  # the head's rigid velocity at every particle, (..., S, N, 3)
-    v = torch.where(model.pinned[..., None], head, v)
+    flag is updated (device-side; :mod:`ams_torch.sim.finish`, its fused kernel when ``native``).
+    Returns (v, diverged_frame, diverged_input)."""
+    v, speed = (native_finish(model, x, v, pose) if native else pin_and_speed(x, v, model.pinned, pose))
     # NaN/Inf in x or v makes the largest relative speed NaN (amax propagates it), and NaN <= limit
     # is False: one comparison catches both non-finite and exploding particles
-    bad = ~(torch.linalg.vector_norm(v - head, dim=-1).amax() <= config.max_relative_speed)
+    bad = ~(speed.amax() <= config.max_relative_speed)
     inputs = [state.x, state.v]
     if isinstance(control.external_force, torch.Tensor):
         inputs.append(control.external_force)
@@ -167,7 +169,7 @@ def step(model: Model, state: State, control: Control, config: Config, timer=Non
     if config.colliders:
         with stage("collisions"):
             x, v = collisions(model, config, x, v, pose1, control.collider_poses, native)
-    v, diverged_frame, diverged_input = _finish(model, config, state, control, x, v, pose1)
+    v, diverged_frame, diverged_input = _finish(model, config, state, control, x, v, pose1, native)
     ghost_rest = state.ghost_rest
     if config.nonhookean:
         ghost_rest = plastic_update(model, coeffs, x, ghost_rest, state.sag_offset, pose1)

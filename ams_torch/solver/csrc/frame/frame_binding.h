@@ -19,6 +19,12 @@
 //   assemble_substep = -1: returns the new (x, v), each (..., S, N, 3);
 //   assemble_substep = k >= 0: returns substep k's system assembled at the given (x, v):
 //            blocks (..., S, N, 4, 3, 3) and rhs (..., S, N, 3) (the parity tests' debug mode).
+//
+//   finish(Tensor x, Tensor v, Tensor num_pinned, Tensor[] pose) -> (Tensor, Tensor)
+//   (finish.h; the Python op ams_torch::finish in ams_torch/sim/finish.py)
+//   x, v: (..., S, N, 3); num_pinned (S,) int64; pose: [translation (P.., 3), linear_velocity,
+//            angular_velocity], P = 1 or the number of scenes; returns v' (..., S, N, 3) and the
+//            speed relative to the head (..., S, N).
 #pragma once
 
 #include <ATen/core/Tensor.h>
@@ -29,6 +35,7 @@
 #include <tuple>
 #include <vector>
 
+#include "finish.h"
 #include "frame.h"
 
 namespace ams_torch {
@@ -39,6 +46,9 @@ constexpr const char* kFrameSchema =
     "frame(Tensor[] state, Tensor? external_force, Tensor[] model, Tensor[] poses, float dt, int substeps, "
     "float ftl_damping, int integrity_model, bool angular, bool angular_reaction, bool implicit_angular, "
     "bool geometric_stiffness, bool inextensibility, bool hermite, int assemble_substep) -> (Tensor, Tensor)";
+
+constexpr const char* kFinishSchema =
+    "finish(Tensor x, Tensor v, Tensor num_pinned, Tensor[] pose) -> (Tensor, Tensor)";
 
 enum StateIndex { kX, kV, kGhostRest, kSagOffset, kStateCount };
 enum ModelIndex {
@@ -183,6 +193,66 @@ inline std::tuple<at::Tensor, at::Tensor> frame_outputs(const FrameInputs& in) {
   std::vector<int64_t> shape(x.sizes().begin(), x.sizes().end() - 1);
   shape.insert(shape.end(), {banded::kBand + 1, 3, 3});
   return {at::empty(shape, opts), at::empty(x.sizes(), opts)};
+}
+
+// Validated, contiguous inputs of one finish call and its outputs (v', speed).
+struct FinishInputs {
+  at::Tensor x, v, num_pinned, translation, linear, angular, v_out, speed;
+  int64_t scenes = 0, strands = 0, particles = 0, pose_scenes = 1;
+};
+
+inline FinishInputs check_finish_inputs(const char* op, const at::Tensor& x, const at::Tensor& v,
+                                        const at::Tensor& num_pinned, at::TensorList pose) {
+  TORCH_CHECK(x.dim() >= 3 && x.size(-1) == 3, op, ": x must have shape (..., S, N, 3), got ", x.sizes());
+  const auto dtype = x.scalar_type();
+  TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, op, ": float32 or float64 only, got ", dtype);
+  check_shape(op, v, "v", x.sizes());
+  TORCH_CHECK(pose.size() == 3, op, ": pose must be [translation, linear_velocity, angular_velocity], got ",
+              pose.size(), " tensors");
+  FinishInputs in;
+  in.strands = x.size(-3);
+  in.particles = x.size(-2);
+  in.scenes = in.strands * in.particles > 0 ? x.numel() / (in.strands * in.particles * 3) : 0;
+  check_shape(op, num_pinned, "num_pinned", {in.strands});
+  auto same = [&](const at::Tensor& t, const char* name, at::ScalarType want) {
+    TORCH_CHECK(t.device() == x.device(), op, ": ", name, " is on ", t.device(), ", x on ", x.device());
+    TORCH_CHECK(t.scalar_type() == want, op, ": ", name, " must be ", want, ", got ", t.scalar_type());
+    return t.contiguous();
+  };
+  in.x = same(x, "x", dtype);
+  in.v = same(v, "v", dtype);
+  in.num_pinned = same(num_pinned, "num_pinned", at::kLong);
+  static const char* kNames[3] = {"translation", "linear_velocity", "angular_velocity"};
+  const int64_t p = pose[0].numel() / 3;
+  TORCH_CHECK(p == 1 || p == in.scenes, op, ": translation holds ", p, " poses for ", in.scenes,
+              " scenes (give one, or one per scene)");
+  in.pose_scenes = p;
+  at::Tensor* dst[3] = {&in.translation, &in.linear, &in.angular};
+  for (int q = 0; q < 3; ++q) {
+    TORCH_CHECK(pose[q].numel() == 3 * p && pose[q].size(-1) == 3, op, ": ", kNames[q], " must hold ", p,
+                " vectors, got shape ", pose[q].sizes());
+    *dst[q] = same(pose[q], kNames[q], dtype);
+  }
+  const auto opts = x.options().memory_format(at::MemoryFormat::Contiguous);
+  in.v_out = at::empty(x.sizes(), opts);
+  in.speed = at::empty(x.sizes().slice(0, x.dim() - 1), opts);
+  return in;
+}
+
+template <class T>
+FinishArgs<T> finish_args(const FinishInputs& in) {
+  return FinishArgs<T>{in.scenes,
+                       in.strands,
+                       in.particles,
+                       in.pose_scenes,
+                       in.x.const_data_ptr<T>(),
+                       in.v.const_data_ptr<T>(),
+                       in.translation.const_data_ptr<T>(),
+                       in.linear.const_data_ptr<T>(),
+                       in.angular.const_data_ptr<T>(),
+                       in.num_pinned.const_data_ptr<int64_t>(),
+                       in.v_out.mutable_data_ptr<T>(),
+                       in.speed.mutable_data_ptr<T>()};
 }
 
 } // namespace frame

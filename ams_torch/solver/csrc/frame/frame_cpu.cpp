@@ -10,6 +10,9 @@
 // stay in L1/L2 for the whole frame. The scratch is allocated once per thread and reused across
 // calls; nothing is allocated per strand. The last group of a scene is padded with copies of a
 // real strand. The M + 1 substep head poses of every scene are computed once per call.
+//
+// Op `ams_torch_frame_cpu::finish` (finish.h): the frame's end, pinned velocities and speeds
+// relative to the head, one pass over the particles, parallel over strands.
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
@@ -200,14 +203,33 @@ std::tuple<at::Tensor, at::Tensor> frame_cpu(at::TensorList state, const std::op
   return out;
 }
 
+std::tuple<at::Tensor, at::Tensor> finish_cpu(const at::Tensor& x, const at::Tensor& v, const at::Tensor& num_pinned,
+                                              at::TensorList pose) {
+  constexpr const char* op = "ams_torch_frame_cpu::finish";
+  FinishInputs in = check_finish_inputs(op, x, v, num_pinned, pose);
+  TORCH_CHECK(in.x.device().is_cpu(), op, ": CPU tensors expected");
+  const int64_t strands = in.scenes * in.strands, n = in.particles;
+  if (strands > 0 && n > 0) {
+    AT_DISPATCH_FLOATING_TYPES(in.x.scalar_type(), op, [&] {
+      const FinishArgs<scalar_t> a = finish_args<scalar_t>(in);
+      at::parallel_for(0, strands, std::max<int64_t>(1, 4096 / n), [&](int64_t begin, int64_t end) {
+        for (int64_t p = begin * n; p < end * n; ++p) finish_particle(a, p);
+      });
+    });
+  }
+  return {in.v_out, in.speed};
+}
+
 } // namespace
 } // namespace frame
 } // namespace ams_torch
 
 TORCH_LIBRARY(ams_torch_frame_cpu, m) {
   m.def(ams_torch::frame::kFrameSchema);
+  m.def(ams_torch::frame::kFinishSchema);
 }
 
 TORCH_LIBRARY_IMPL(ams_torch_frame_cpu, CPU, m) {
   m.impl("frame", &ams_torch::frame::frame_cpu);
+  m.impl("finish", &ams_torch::frame::finish_cpu);
 }

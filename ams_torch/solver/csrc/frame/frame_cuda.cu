@@ -10,6 +10,7 @@
 // and write of the inputs. The matrix lives only in the workspace (assembled, factored and solved
 // in place). Per-strand data (rest shape, coefficients) is interleaved once per strand and shared
 // by the scenes; per-scene data per (scene, strand). No torch headers: see frame_cuda.h.
+// The frame's end (finish.h) is a separate kernel, one thread per particle.
 #include <cuda_runtime.h>
 
 #include <stdint.h>
@@ -150,7 +151,27 @@ __global__ void __launch_bounds__(kFrameThreads) frame_kernel(const FrameArgs<T>
   }
 }
 
+template <class T>
+__global__ void finish_kernel(const FinishArgs<T> args, int64_t count) {
+  const int64_t p = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (p < count) finish_particle(args, p);
+}
+
 } // namespace
+
+template <class T>
+cudaError_t finish_cuda(const FinishArgs<T>& args, cudaStream_t stream) {
+  const int64_t count = args.scenes * args.strands * args.particles;
+  if (count <= 0) return cudaSuccess;
+  constexpr int threads = 256;
+  const int64_t blocks = (count + threads - 1) / threads;
+  if (blocks > 0x7fffffffLL) return cudaErrorInvalidConfiguration;
+  finish_kernel<T><<<unsigned(blocks), threads, 0, stream>>>(args, count);
+  return cudaGetLastError();
+}
+
+template cudaError_t finish_cuda<float>(const FinishArgs<float>&, cudaStream_t);
+template cudaError_t finish_cuda<double>(const FinishArgs<double>&, cudaStream_t);
 
 int64_t frame_cuda_workspace_elems(int64_t scenes, int64_t strands, int64_t particles, int64_t substeps) {
   return Offsets(scenes, strands, particles, substeps).total;

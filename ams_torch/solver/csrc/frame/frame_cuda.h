@@ -7,6 +7,7 @@
 #include <cuda_runtime_api.h>
 #include <stdint.h>
 
+#include "finish.h"
 #include "frame.h"
 
 namespace ams_torch {
@@ -35,6 +36,14 @@ extern template cudaError_t frame_cuda<float>(const FrameArgs<float>&, const Fra
                                               float*, cudaStream_t);
 extern template cudaError_t frame_cuda<double>(const FrameArgs<double>&, const FrameSettings&, int64_t, double*,
                                                double*, double*, cudaStream_t);
+
+// The frame's end (finish.h): one thread per particle, asynchronously on `stream`. Returns
+// cudaGetLastError() after the launch.
+template <class T>
+cudaError_t finish_cuda(const FinishArgs<T>& args, cudaStream_t stream);
+
+extern template cudaError_t finish_cuda<float>(const FinishArgs<float>&, cudaStream_t);
+extern template cudaError_t finish_cuda<double>(const FinishArgs<double>&, cudaStream_t);
 
 } // extern "C++"
 

@@ -2,7 +2,8 @@
 // shapes in frame_binding.h). Built only against a CUDA torch (it needs torch's CUDA headers);
 // the kernels are in frame_cuda.cu, which nvcc compiles without torch headers. Runs on the
 // current CUDA stream of the inputs' device, with its workspace from torch's caching allocator;
-// no host synchronisation (capturable by CUDA graphs).
+// no host synchronisation (capturable by CUDA graphs). Also op `ams_torch_frame_cuda::finish`
+// (finish.h, one launch).
 #include <ATen/Dispatch.h>
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
@@ -48,13 +49,30 @@ std::tuple<at::Tensor, at::Tensor> frame_cuda_op(at::TensorList state, const std
   return out;
 }
 
+std::tuple<at::Tensor, at::Tensor> finish_cuda_op(const at::Tensor& x, const at::Tensor& v,
+                                                  const at::Tensor& num_pinned, at::TensorList pose) {
+  constexpr const char* op = "ams_torch_frame_cuda::finish";
+  TORCH_CHECK(x.is_cuda(), op, ": CUDA tensors expected");
+  const c10::cuda::CUDAGuard guard(x.device());
+  FinishInputs in = check_finish_inputs(op, x, v, num_pinned, pose);
+  if (in.x.numel() == 0) return {in.v_out, in.speed};
+  const cudaStream_t stream = c10::cuda::getCurrentCUDAStream(x.device().index()).stream();
+  cudaError_t err = cudaSuccess;
+  AT_DISPATCH_FLOATING_TYPES(in.x.scalar_type(), op,
+                             [&] { err = finish_cuda<scalar_t>(finish_args<scalar_t>(in), stream); });
+  TORCH_CHECK(err == cudaSuccess, op, ": kernel launch failed: ", cudaGetErrorString(err));
+  return {in.v_out, in.speed};
+}
+
 } // namespace frame
 } // namespace ams_torch
 
 TORCH_LIBRARY(ams_torch_frame_cuda, m) {
   m.def(ams_torch::frame::kFrameSchema);
+  m.def(ams_torch::frame::kFinishSchema);
 }
 
 TORCH_LIBRARY_IMPL(ams_torch_frame_cuda, CUDA, m) {
   m.impl("frame", &ams_torch::frame::frame_cuda_op);
+  m.impl("finish", &ams_torch::frame::finish_cuda_op);
 }

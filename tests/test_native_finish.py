@@ -1,0 +1,149 @@
+"""The frame's end (``ams_torch/sim/finish.py``, ``csrc/frame/finish.h``): the fused native op
+against its torch definition ``pin_and_speed`` (float64 to rounding, float32 within a few ulps),
+NaN/Inf propagation into the divergence flag, op registration (opcheck, fake), and whole frames
+of the simulator through both paths."""
+import math
+
+import pytest
+import torch
+
+import ams_torch as at
+from ams_torch.geometry.pose import Pose
+from ams_torch.sim import finish
+from ams_torch.sim.state import Control
+from ams_torch.sim.step import SimulationDiverged, check_state, step
+from conftest import built_native
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+F64, F32 = torch.float64, torch.float32
+
+
+@pytest.fixture(scope="module")
+def native_cpu():
+    return built_native("frame_cpu")
+
+
+def _case(device="cpu", dtype=F64, batch=(), pose_batch=None, strands=6, particles=7, seed=0):
+    g = torch.Generator().manual_seed(seed)
+
+    def rnd(*shape, scale=1.0):
+        return (scale * torch.randn(shape, generator=g, dtype=F64)).to(device=device, dtype=dtype)
+
+    x = rnd(*batch, strands, particles, 3, scale=0.1)
+    v = rnd(*batch, strands, particles, 3)
+    pb = batch if pose_batch is None else pose_batch
+    angle = rnd(*pb, 3)
+    rot = torch.linalg.matrix_exp(torch.linalg.cross(
+        angle[..., None, :].expand(*pb, 3, 3), torch.eye(3, dtype=dtype, device=device).expand(*pb, 3, 3), dim=-1))
+    pose = Pose(rot, rnd(*pb, 3, scale=0.1), rnd(*pb, 3), rnd(*pb, 3, scale=5.0), check=False)
+    counts = torch.tensor([(s * 3) % (particles + 1) for s in range(strands)], device=device)
+    pinned = torch.arange(particles, device=device)[None, :] < counts[:, None]
+    model = type("M", (), {"pinned": pinned, "num_pinned": counts})()
+    return model, x, v, pose
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("batch,pose_batch", [((), None), ((3,), None), ((3,), ()), ((2, 2), None)])
+def test_native_equals_definition_float64(native_cpu, device, batch, pose_batch):
+    model, x, v, pose = _case(device, F64, batch, pose_batch)
+    want_v, want_s = finish.pin_and_speed(x, v, model.pinned, pose)
+    got_v, got_s = finish.native_finish(model, x, v, pose)
+    assert got_v.shape == x.shape and got_s.shape == x.shape[:-1]
+    # pinned velocities are the definition's own values; free ones are v itself: exact
+    assert torch.equal(got_v, want_v)
+    assert ((got_s - want_s).abs() / want_s.abs().clamp_min(1e-300)).max() <= 1e-14
+    # what the op computes is physics, not a copy: pinned particles move with the head
+    head = pose.velocity_at(x)
+    assert torch.equal(got_v[..., model.pinned, :], head[..., model.pinned, :])
+    assert (got_s[..., model.pinned] == 0).all() and (got_s[..., ~model.pinned] > 0).all()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_native_equals_definition_float32(native_cpu, device):
+    """float32: the head's rigid velocity is a few products and sums of O(1) terms, so each
+    component is within a few ulps of the norm of the terms (bound 8 eps · scale)."""
+    model, x, v, pose = _case(device, F32, (2,))
+    want_v, want_s = finish.pin_and_speed(x, v, model.pinned, pose)
+    got_v, got_s = finish.native_finish(model, x, v, pose)
+    scale = 1.0 + v.abs().amax() + pose.angular_velocity.abs().amax() * (x.abs().amax() + 1.0)
+    eps = torch.finfo(F32).eps
+    assert (got_v - want_v).abs().max() <= 8 * eps * scale
+    assert (got_s - want_s).abs().max() <= 8 * eps * scale
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf])
+def test_nonfinite_particles_give_nonfinite_speed(native_cpu, bad):
+    model, x, v, pose = _case()
+    free = (~model.pinned).nonzero()[0]
+    v[free[0], free[1], 1] = bad
+    _, speed = finish.native_finish(model, x, v, pose)
+    assert not math.isfinite(float(speed[free[0], free[1]]))
+    assert not bool(speed.amax() <= 1e9)  # NaN and Inf both fail the divergence comparison
+    others = torch.ones_like(speed, dtype=torch.bool)
+    others[free[0], free[1]] = False
+    assert torch.isfinite(speed[others]).all()
+
+
+def test_opcheck(native_cpu):
+    for dtype, batch, pose_batch in ((F64, (2,), None), (F32, (), None), (F64, (3,), ())):
+        model, x, v, pose = _case("cpu", dtype, batch, pose_batch)
+        (_, t, lin, ang), _ = finish._pose_tensors(pose, x)
+        torch.library.opcheck(torch.ops.ams_torch.finish.default, (x, v, model.num_pinned, [t, lin, ang]))
+
+
+def test_op_default_is_the_definition():
+    model, x, v, pose = _case(batch=(2,))
+    (_, t, lin, ang), _ = finish._pose_tensors(pose, x)
+    got = finish._finish_torch(x, v, model.num_pinned, [t, lin, ang])
+    want = finish.pin_and_speed(x, v, model.pinned, pose)
+    assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
+
+
+def test_gradients_stay_on_the_definition(native_cpu):
+    model, x, v, pose = _case()
+    v = v.requires_grad_()
+    out, speed = finish.native_finish(model, x, v, pose)
+    (out.sum() + speed.sum()).backward()
+    want = torch.where(model.pinned[..., None], 0.0, 1.0 + (out - pose.velocity_at(x)) / speed[..., None])
+    assert torch.allclose(v.grad, want.detach(), rtol=1e-12, atol=1e-12)
+
+
+def _shaken(backend, dtype=F64):
+    head = at.default_head(3)
+    from ams_torch.grooms.head import hanging_groom
+    from ams_torch.testing import shake_poses
+
+    rest = hanging_groom(head, 24, 8, 0.12, seed=3)
+    sim = at.Simulator(rest, at.Params(substeps=2), dtype=dtype, backend=backend)
+    return sim, shake_poses(12, 1 / 60, amplitude=0.6, frequency=1.5, dtype=dtype)
+
+
+def test_simulator_frames_native_equal_torch(native_cpu):
+    """Whole frames (dynamics + the frame's end) through both paths, float64: the finish adds no
+    difference beyond the frame kernel's rounding."""
+    out = {}
+    for backend in ("native", "torch"):
+        sim, poses = _shaken(backend)
+        state = sim.initial_state()
+        for pose in poses:
+            state = sim.step(state, pose)
+        out[backend] = state
+    a, b = out["native"], out["torch"]
+    assert (a.x - b.x).abs().max() <= 1e-12 and (a.v - b.v).abs().max() <= 1e-10
+    assert int(a.diverged_frame) == -1 == int(b.diverged_frame)
+
+
+def test_divergence_flag_through_the_native_finish(native_cpu):
+    """A particle made NaN in the state sets the flag on the next frame on the native path, and the
+    guard names the input as bad, as on the torch path."""
+    for backend in ("native", "torch"):
+        sim, poses = _shaken(backend)
+        state = sim.initial_state()
+        state = sim.step(state, poses[0])
+        x = state.x.clone()
+        x[5, 4, 0] = math.nan
+        state = step(sim.model, state.replace(x=x), Control(pose=poses[1]), sim.config)
+        assert int(state.diverged_frame) == 2, backend
+        with pytest.raises(SimulationDiverged) as err:
+            check_state(state, sim.config)
+        assert err.value.bad_input, backend
