@@ -147,3 +147,4 @@ def test_divergence_flag_through_the_native_finish(native_cpu):
         with pytest.raises(SimulationDiverged) as err:
             check_state(state, sim.config)
         assert err.value.bad_input, backend
+

@@ -1,0 +1,25 @@
+"""scripts/bench_frame.py runs (the benchmark itself is run by hand: docs/benchmarks/frame.md)."""
+import json
+
+from conftest import built_native, load_script
+
+
+def test_bench_frame_smoke(tmp_path):
+    """scripts/bench_frame.py, in-process and tiny: both paths timed, the JSON records carry the
+    fields the issue names, the native path dispatches fewer ops than the torch path, and the
+    markdown table and ratio are written."""
+    built_native("frame_cpu")
+    bench = load_script("bench_frame")
+    out = tmp_path / "frame"
+    assert bench.main(["--scenes", "dynamics", "--strands", "64", "--reps", "2", "--no-memory", "--threads", "1",
+                       "--out", str(out)]) == 0
+    records = json.loads((tmp_path / "frame.json").read_text())["records"]
+    keys = {"scene", "S", "N", "device", "path", "stage", "median_ms", "min_ms", "ops_per_frame",
+            "peak_bytes_per_particle"}
+    assert all(keys <= set(r) for r in records)
+    total = {r["path"]: r for r in records if r["stage"] == "total"}
+    assert set(total) == {"native", "torch"} and total["native"]["S"] == 64 and total["native"]["N"] == 32
+    assert total["native"]["ops_per_frame"] < total["torch"]["ops_per_frame"] / 10
+    assert all(r["min_ms"] > 0 and r["min_ms"] <= r["median_ms"] for r in records if r["stage"] == "total")
+    md = (tmp_path / "frame.md").read_text()
+    assert "| dynamics | 64 | native |" in md and "torch / native" in md
