@@ -16,6 +16,7 @@ from conftest import built_native
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 F64, F32 = torch.float64, torch.float32
+EPS64 = torch.finfo(F64).eps
 
 
 @pytest.fixture(scope="module")
@@ -49,13 +50,15 @@ def test_native_equals_definition_float64(native_cpu, device, batch, pose_batch)
     want_v, want_s = finish.pin_and_speed(x, v, model.pinned, pose)
     got_v, got_s = finish.native_finish(model, x, v, pose)
     assert got_v.shape == x.shape and got_s.shape == x.shape[:-1]
-    # pinned velocities are the definition's own values; free ones are v itself: exact
-    assert torch.equal(got_v, want_v)
-    assert ((got_s - want_s).abs() / want_s.abs().clamp_min(1e-300)).max() <= 1e-14
-    # what the op computes is physics, not a copy: pinned particles move with the head
+    # free particles keep v exactly; pinned ones take the head's rigid velocity, to rounding (the
+    # kernel may fuse the cross product's multiply-adds)
+    pinned = model.pinned
+    assert torch.equal(got_v[..., ~pinned, :], v[..., ~pinned, :])
     head = pose.velocity_at(x)
-    assert torch.equal(got_v[..., model.pinned, :], head[..., model.pinned, :])
-    assert (got_s[..., model.pinned] == 0).all() and (got_s[..., ~model.pinned] > 0).all()
+    scale = 1.0 + pose.angular_velocity.abs().amax() * (x.abs().amax() + pose.translation.abs().amax())
+    assert (got_v[..., pinned, :] - head[..., pinned, :]).abs().max() <= 8 * EPS64 * scale
+    assert ((got_s - want_s).abs() / want_s.abs().clamp_min(1e-300))[..., ~pinned].max() <= 1e-14
+    assert (got_s[..., pinned] == 0).all() and (got_s[..., ~pinned] > 0).all()
 
 
 @pytest.mark.parametrize("device", DEVICES)

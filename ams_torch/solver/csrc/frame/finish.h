@@ -28,29 +28,43 @@ struct FinishArgs {
   T *v_out, *speed;
 };
 
-// Particle p (0 <= p < B S N, the flat index of (b, s, i)).
+// Particles [i0, i1) of strand g (0 <= g < B S, the flat index of (b, s)): the pose and pinned
+// count are read once, the loop over particles has no index arithmetic (the CPU kernel runs it
+// over whole strands, where the compiler vectorises it).
+template <class T>
+AMS_HD void finish_range(const FinishArgs<T>& a, int64_t g, int64_t i0, int64_t i1) {
+  const int64_t b = g / a.strands, s = g - b * a.strands;
+  const int64_t q = a.pose_scenes == 1 ? 0 : b;
+  const T t0 = a.translation[3 * q], t1 = a.translation[3 * q + 1], t2 = a.translation[3 * q + 2];
+  const T u0 = a.linear[3 * q], u1 = a.linear[3 * q + 1], u2 = a.linear[3 * q + 2];
+  const T w0 = a.angular[3 * q], w1 = a.angular[3 * q + 1], w2 = a.angular[3 * q + 2];
+  const int64_t pinned = a.num_pinned[s];
+  const int64_t base = g * a.particles;
+  const T* x = a.x + 3 * base;
+  const T* v = a.v + 3 * base;
+  T* out = a.v_out + 3 * base;
+  T* speed = a.speed + base;
+  for (int64_t i = i0; i < i1; ++i) {
+    const T d0 = x[3 * i] - t0, d1 = x[3 * i + 1] - t1, d2 = x[3 * i + 2] - t2;
+    const T h0 = u0 + (w1 * d2 - w2 * d1);
+    const T h1 = u1 + (w2 * d0 - w0 * d2);
+    const T h2 = u2 + (w0 * d1 - w1 * d0);
+    const bool pin = i < pinned;
+    const T o0 = pin ? h0 : v[3 * i], o1 = pin ? h1 : v[3 * i + 1], o2 = pin ? h2 : v[3 * i + 2];
+    out[3 * i] = o0;
+    out[3 * i + 1] = o1;
+    out[3 * i + 2] = o2;
+    const T r0 = o0 - h0, r1 = o1 - h1, r2 = o2 - h2;
+    speed[i] = sqrt(r0 * r0 + r1 * r1 + r2 * r2);
+  }
+}
+
+// Particle p (0 <= p < B S N, the flat index of (b, s, i)): one thread of the CUDA kernel.
 template <class T>
 AMS_HD void finish_particle(const FinishArgs<T>& a, int64_t p) {
-  const int64_t strand = p / a.particles, i = p - strand * a.particles;
-  const int64_t b = strand / a.strands, s = strand - b * a.strands;
-  const int64_t q = a.pose_scenes == 1 ? 0 : b;
-  const T* t = a.translation + 3 * q;
-  const T* u = a.linear + 3 * q;
-  const T* w = a.angular + 3 * q;
-  const T* x = a.x + 3 * p;
-  const T* v = a.v + 3 * p;
-  const T d0 = x[0] - t[0], d1 = x[1] - t[1], d2 = x[2] - t[2];
-  const T h0 = u[0] + (w[1] * d2 - w[2] * d1);
-  const T h1 = u[1] + (w[2] * d0 - w[0] * d2);
-  const T h2 = u[2] + (w[0] * d1 - w[1] * d0);
-  const bool pinned = i < a.num_pinned[s];
-  const T o0 = pinned ? h0 : v[0], o1 = pinned ? h1 : v[1], o2 = pinned ? h2 : v[2];
-  T* out = a.v_out + 3 * p;
-  out[0] = o0;
-  out[1] = o1;
-  out[2] = o2;
-  const T r0 = o0 - h0, r1 = o1 - h1, r2 = o2 - h2;
-  a.speed[p] = sqrt(r0 * r0 + r1 * r1 + r2 * r2);
+  const int64_t g = p / a.particles;
+  const int64_t i = p - g * a.particles;
+  finish_range(a, g, i, i + 1);
 }
 
 } // namespace frame

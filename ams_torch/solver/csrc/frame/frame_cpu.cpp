@@ -213,7 +213,7 @@ std::tuple<at::Tensor, at::Tensor> finish_cpu(const at::Tensor& x, const at::Ten
     AT_DISPATCH_FLOATING_TYPES(in.x.scalar_type(), op, [&] {
       const FinishArgs<scalar_t> a = finish_args<scalar_t>(in);
       at::parallel_for(0, strands, std::max<int64_t>(1, 4096 / n), [&](int64_t begin, int64_t end) {
-        for (int64_t p = begin * n; p < end * n; ++p) finish_particle(a, p);
+        for (int64_t g = begin; g < end; ++g) finish_range(a, g, 0, n);
       });
     });
   }
