@@ -62,7 +62,7 @@ MARKER_NAME = "build.json"     # written after a successful build: its inputs an
 # One backend per op group and device, so that a group that fails to build leaves the others.
 _BACKENDS = {
     "cpu": ("ams_torch_banded_cpu", ("banded/banded_cpu.cpp",),
-            ("banded/banded_cholesky.h", "banded/banded_simd.h", "banded/thread_scratch.h"),
+            ("banded/banded_cholesky.h", "banded/banded_simd.h", "banded/interleave.h", "banded/thread_scratch.h"),
             "ams_torch_cpu", "cpu"),
     "cuda": (
         "ams_torch_banded_cuda",
@@ -82,8 +82,8 @@ _BACKENDS = {
     "frame_cpu": (
         "ams_torch_frame_cpu",
         ("frame/frame_cpu.cpp",),
-        ("banded/banded_cholesky.h", "banded/banded_simd.h", "banded/thread_scratch.h", "frame/lanes.h",
-         "frame/ftl.h", "frame/finish.h", "frame/frame.h", "frame/frame_binding.h"),
+        ("banded/banded_cholesky.h", "banded/banded_simd.h", "banded/interleave.h", "banded/thread_scratch.h",
+         "frame/lanes.h", "frame/ftl.h", "frame/finish.h", "frame/frame.h", "frame/frame_binding.h"),
         "ams_torch_frame_cpu",
         "cpu",
     ),
@@ -98,8 +98,8 @@ _BACKENDS = {
     "collide_cpu": (
         "ams_torch_collide_cpu",
         ("collide/collide_cpu.cpp",),
-        ("banded/banded_cholesky.h", "banded/banded_simd.h", "banded/thread_scratch.h", "frame/lanes.h",
-         "frame/ftl.h", "collide/collide.h", "collide/collide_binding.h"),
+        ("banded/banded_cholesky.h", "banded/banded_simd.h", "banded/interleave.h", "banded/thread_scratch.h",
+         "frame/lanes.h", "frame/ftl.h", "collide/collide.h", "collide/collide_binding.h"),
         "ams_torch_collide_cpu",
         "cpu",
     ),

@@ -22,6 +22,7 @@
 
 #include "banded_cholesky.h"
 #include "banded_simd.h"
+#include "interleave.h"
 #include "thread_scratch.h"
 
 namespace ams_torch {
@@ -51,17 +52,13 @@ static void solve_strands(const T* blocks, const T* rhs, T* x, int64_t S, int64_
         pa[l] = blocks + src * E;
         pb[l] = rhs + src * R;
       }
-      // Interleave: W sequential read streams, one contiguous write stream.
-      for (int64_t e = 0; e < E; ++e)
-        for (int64_t l = 0; l < W; ++l) sa[e * W + l] = pa[l][e];
-      for (int64_t e = 0; e < R; ++e)
-        for (int64_t l = 0; l < W; ++l) sb[e * W + l] = pb[l][e];
+      interleave<T, W>(sa, pa, E);
+      interleave<T, W>(sb, pb, R);
       solve_strand<V, T>(a, b, N);
       const int64_t lanes = std::min<int64_t>(W, S - s0);
-      for (int64_t l = 0; l < lanes; ++l) {
-        T* px = x + (s0 + l) * R;
-        for (int64_t e = 0; e < R; ++e) px[e] = sb[e * W + l];
-      }
+      T* px[W];
+      for (int64_t l = 0; l < lanes; ++l) px[l] = x + (s0 + l) * R;
+      deinterleave<T, W>(px, sb, R, lanes);
     }
   });
 }

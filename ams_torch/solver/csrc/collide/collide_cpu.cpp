@@ -31,6 +31,7 @@
 #include "banded_simd.h"
 #include "collide.h"
 #include "collide_binding.h"
+#include "interleave.h"
 #include "thread_scratch.h"
 
 namespace ams_torch {
@@ -59,8 +60,9 @@ void run_collide(const CollideArgs<T>& args, const CollideSettings& cfg, T* xo, 
       int64_t strand[W];
       for (int64_t l = 0; l < W; ++l) strand[l] = std::min(s0 + l, S - 1); // pad with a real strand
       auto gather = [&](const T* base, int64_t per_strand, int64_t stride, int64_t first, int64_t offset) {
-        for (int64_t e = 0; e < per_strand; ++e)
-          for (int64_t l = 0; l < W; ++l) sc[(offset + e) * W + l] = base[(first + strand[l]) * stride + e];
+        const T* src[W];
+        for (int64_t l = 0; l < W; ++l) src[l] = base + (first + strand[l]) * stride;
+        banded::interleave<T, W>(sc + offset * W, src, per_strand);
       };
       gather(args.x, 3 * N, 3 * N, b * S, ox);
       gather(args.v, 3 * N, 3 * N, b * S, ov);
@@ -74,14 +76,11 @@ void run_collide(const CollideArgs<T>& args, const CollideSettings& cfg, T* xo, 
       const V pinned = *reinterpret_cast<const V*>(pin);
       const T* head = args.head_rotation + 9 * (args.head_scenes == 1 ? 0 : b);
       collision_stage(x, v, rest, edge, N, pinned, prepared.data() + b * C, int(C), cfg, head);
-      for (int64_t l = 0; l < lanes; ++l) {
-        T* px = xo + (b * S + s0 + l) * 3 * N;
-        T* pv = vo + (b * S + s0 + l) * 3 * N;
-        for (int64_t e = 0; e < 3 * N; ++e) {
-          px[e] = sc[(ox + e) * W + l];
-          pv[e] = sc[(ov + e) * W + l];
-        }
-      }
+      T* dst[W];
+      for (int64_t l = 0; l < lanes; ++l) dst[l] = xo + (b * S + s0 + l) * 3 * N;
+      banded::deinterleave<T, W>(dst, sc + ox * W, 3 * N, lanes);
+      for (int64_t l = 0; l < lanes; ++l) dst[l] = vo + (b * S + s0 + l) * 3 * N;
+      banded::deinterleave<T, W>(dst, sc + ov * W, 3 * N, lanes);
     }
   });
 }

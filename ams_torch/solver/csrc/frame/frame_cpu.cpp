@@ -27,6 +27,7 @@
 #include "banded_simd.h"
 #include "frame.h"
 #include "frame_binding.h"
+#include "interleave.h"
 #include "thread_scratch.h"
 
 namespace ams_torch {
@@ -69,18 +70,8 @@ struct Layout {
   }
 };
 
-// dst[e W + l] = src[l][e]: W sequential read streams, one contiguous write stream.
-template <class T, int64_t W>
-void interleave(T* dst, const T* const* src, int64_t count) {
-  for (int64_t e = 0; e < count; ++e)
-    for (int64_t l = 0; l < W; ++l) dst[e * W + l] = src[l][e];
-}
-
-template <class T, int64_t W>
-void deinterleave(T* const* dst, const T* src, int64_t count, int64_t lanes) {
-  for (int64_t l = 0; l < lanes; ++l)
-    for (int64_t e = 0; e < count; ++e) dst[l][e] = src[e * W + l];
-}
+using banded::deinterleave;
+using banded::interleave;
 
 template <class T>
 void run_frame(const FrameArgs<T>& args, const FrameSettings& cfg, int64_t assemble_substep, T* out0, T* out1) {
