@@ -10,8 +10,10 @@ import torch
 import ams_torch as at
 from ams_torch.geometry.pose import Pose
 from ams_torch.sim import finish
+from ams_torch.sim.op_support import pose_tensors
 from ams_torch.sim.state import Control
 from ams_torch.sim.step import SimulationDiverged, check_state, step
+from ams_torch.stages.collide import SphereCollider
 from conftest import built_native
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
@@ -90,13 +92,13 @@ def test_nonfinite_particles_give_nonfinite_speed(native_cpu, bad):
 def test_opcheck(native_cpu):
     for dtype, batch, pose_batch in ((F64, (2,), None), (F32, (), None), (F64, (3,), ())):
         model, x, v, pose = _case("cpu", dtype, batch, pose_batch)
-        (_, t, lin, ang), _ = finish._pose_tensors(pose, x)
+        (_, t, lin, ang), _ = pose_tensors(pose, x)
         torch.library.opcheck(torch.ops.ams_torch.finish.default, (x, v, model.num_pinned, [t, lin, ang]))
 
 
 def test_op_default_is_the_definition():
     model, x, v, pose = _case(batch=(2,))
-    (_, t, lin, ang), _ = finish._pose_tensors(pose, x)
+    (_, t, lin, ang), _ = pose_tensors(pose, x)
     got = finish._finish_torch(x, v, model.num_pinned, [t, lin, ang])
     want = finish.pin_and_speed(x, v, model.pinned, pose)
     assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
@@ -151,3 +153,43 @@ def test_divergence_flag_through_the_native_finish(native_cpu):
             check_state(state, sim.config)
         assert err.value.bad_input, backend
 
+
+
+@pytest.mark.parametrize("scenes,dtype", [(None, F64), (2, F64), (2, F32)])
+def test_frame_with_its_end_fused(native_cpu, scenes, dtype):
+    """``native_frame_dynamics(..., finish=pose)`` (the frame's end fused into the frame kernel,
+    what a dynamics-only step runs) equals the torch frame followed by ``pin_and_speed``; float64
+    to rounding, float32 within its conditioning (the frame's own float32 bound)."""
+    from ams_torch.sim import native
+    from ams_torch.sim.dynamics import frame_dynamics
+    from test_native_frame import frame_args, make_scene, rel
+
+    sim, state, pose1 = make_scene(dtype=dtype, scenes=scenes, substeps=2, num_pinned=3)
+    args = frame_args(sim, state, pose1)
+    with torch.no_grad():
+        x, v, speed = native.native_frame_dynamics(*args, finish=pose1, pinned=sim.model.pinned)
+        xt, vt = frame_dynamics(*args)
+        vt, st = finish.pin_and_speed(xt, vt, sim.model.pinned, pose1)
+    tol = 1e-12 if dtype == F64 else 2e-4
+    assert rel(x, xt) <= tol and rel(v, vt) <= tol and rel(speed, st) <= tol
+    assert speed.shape == x.shape[:-1]
+    head = pose1.velocity_at(x)
+    assert (v[..., sim.model.pinned, :] - head[..., sim.model.pinned, :]).abs().max() <= 1e3 * torch.finfo(dtype).eps
+
+
+def test_dynamics_only_step_dispatches_one_op_for_dynamics_and_end(native_cpu):
+    """A dynamics-only native frame runs the fused frame op and no separate finish op; a frame
+    with collisions keeps the finish op after them."""
+    from torch.profiler import ProfilerActivity, profile
+
+    names = {}
+    for colliders in (None, [SphereCollider((0.0, 0.0, 0.0), 0.09)]):
+        sim, poses = _shaken("native", F32)
+        if colliders:
+            sim = at.Simulator(sim.model.rest_positions, sim.params, dtype=F32, colliders=colliders, backend="native")
+        state = sim.step(sim.initial_state(), poses[0])
+        with profile(activities=[ProfilerActivity.CPU]) as prof:
+            sim.step(state, poses[1])
+        names[colliders is None] = {e.name for e in prof.events()}
+    assert "ams_torch_frame_cpu::frame_finish" in names[True] and "ams_torch::finish" not in names[True]
+    assert "ams_torch::finish" in names[False] and "ams_torch_frame_cpu::frame" in names[False]

@@ -33,6 +33,7 @@ import ams_torch
 from ams_torch import testing
 from ams_torch.geometry.pose import Pose
 from ams_torch.sim import native
+from ams_torch.sim.op_support import pose_tensors
 from ams_torch.sim.dynamics import frame_dynamics, substep_system
 from ams_torch.sim.model import coefficients
 from ams_torch.sim.step import resolve_pose
@@ -532,7 +533,9 @@ def test_opcheck(native_cpu, device):
         g = torch.Generator().manual_seed(5)
         force = (1e-5 * torch.randn(state.x.shape, generator=g, dtype=F64)).to(dtype=dtype, device=device)
         op_args = native.op_arguments(*frame_args(sim, state, pose1)[:10], force)
-        torch.library.opcheck(torch.ops.ams_torch.frame_dynamics.default, op_args)
+        torch.library.opcheck(torch.ops.ams_torch.frame_dynamics.default, op_args + ([],))
+        (_, t, lin, ang), _ = pose_tensors(pose1, state.x)  # the frame's end fused in
+        torch.library.opcheck(torch.ops.ams_torch.frame_dynamics.default, op_args + ([t, lin, ang],))
         op_args = native.op_arguments(*frame_args(sim, state, pose1)[:10], None)
         torch.library.opcheck(torch.ops.ams_torch.frame_assembly.default, op_args + (1,))
 

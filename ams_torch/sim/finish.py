@@ -16,7 +16,7 @@ from typing import List, Tuple
 import torch
 
 from ams_torch.geometry.pose import Pose
-from ams_torch.sim.native import NATIVE_DTYPES, _pose_tensors
+from ams_torch.sim.op_support import NATIVE_DTYPES, pose_tensors
 from ams_torch.solver import build as _native
 
 __all__ = ["pin_and_speed", "native_finish", "finish_op"]
@@ -94,5 +94,5 @@ def native_finish(model, x: torch.Tensor, v: torch.Tensor, pose: Pose) -> tuple:
     if torch.is_grad_enabled() and any(t.requires_grad for t in (x, v, pose.translation, pose.linear_velocity,
                                                                   pose.angular_velocity)):
         return pin_and_speed(x, v, model.pinned, pose)
-    (_, t, lin, ang), _ = _pose_tensors(pose, x)
+    (_, t, lin, ang), _ = pose_tensors(pose, x)
     return finish_op(x, v, model.num_pinned, [t, lin, ang])

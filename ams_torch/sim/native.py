@@ -46,6 +46,8 @@ from ams_torch.geometry.pose import Pose
 from ams_torch.geometry.sdf import SDFGrid
 from ams_torch.sim.contact import collisions_world
 from ams_torch.sim.dynamics import frame_dynamics, substep_system
+from ams_torch.sim.finish import _finish_torch, pin_and_speed
+from ams_torch.sim.op_support import NATIVE_DTYPES, as_like as _as, pose_tensors as _pose_tensors
 from ams_torch.sim.model import Coefficients, Model
 from ams_torch.sim.state import Config, ExternalForce
 from ams_torch.solver import build as _native
@@ -61,7 +63,6 @@ __all__ = ["NATIVE_DTYPES", "native_frame_available", "native_frame_supported", 
            "native_frame_assembly", "frame_dynamics_op", "frame_assembly_op", "native_collisions_available",
            "native_collisions_supported", "native_collisions", "collisions_world", "collisions_op"]
 
-NATIVE_DTYPES = (torch.float32, torch.float64)
 _KINDS = {"cpu": "frame_cpu", "cuda": "frame_cuda"}
 _INTEGRITY = {"none": 0, "hookean": 1, "nonhookean": 2}
 _INTEGRITY_NAMES = {v: k for k, v in _INTEGRITY.items()}
@@ -174,7 +175,8 @@ def _all_tensors(state, external_force, model, poses):
 def frame_dynamics_op(state: List[torch.Tensor], external_force: Optional[torch.Tensor], model: List[torch.Tensor],
                       poses: List[torch.Tensor], dt: float, substeps: int, ftl_damping: float, integrity_model: int,
                       angular: bool, angular_reaction: bool, implicit_angular: bool, geometric_stiffness: bool,
-                      inextensibility: bool, hermite: bool) -> Tuple[torch.Tensor, torch.Tensor]:
+                      inextensibility: bool, hermite: bool,
+                      finish_pose: List[torch.Tensor]) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Registered op ``ams_torch::frame_dynamics``; default (any device): the torch definition.
 
     state: [x, v, ghost_rest, sag_offset], each (..., S, N, 3) m, m/s, m (head frame), m (head
@@ -183,17 +185,43 @@ def frame_dynamics_op(state: List[torch.Tensor], external_force: Optional[torch.
     (S,) int64, gravity (3,) m/s²); poses: [R0 (P0, 3, 3), t0 (P0, 3) m, u0 (P0, 3) m/s, R1, t1,
     u1] with P_j = 1 or the number of scenes (u read only with ``hermite``); dt s, substeps M,
     ftl_damping, integrity_model 0 none / 1 Hookean / 2 non-Hookean, and the Config flags.
-    Returns new contiguous (x, v), each (..., S, N, 3).
+    finish_pose: [] (none), or the frame's end fused in (``sim/finish.py``): [translation (P, 3) m,
+    linear (P, 3) m/s, angular velocity (P, 3) rad/s] of the head at the end of the frame.
+    Returns new contiguous (x, v, speed): x, v (..., S, N, 3); with ``finish_pose``, v has the
+    pinned particles at the head's rigid velocity and speed (..., S, N) m/s is |v − rigid
+    velocity|; without, v is the dynamics' and speed an empty (0,) tensor.
     """
-    return _frame_torch(state, external_force, model, poses, dt, substeps, ftl_damping, integrity_model, angular,
-                        angular_reaction, implicit_angular, geometric_stiffness, inextensibility, hermite)
+    return _frame_finish_torch(state, external_force, model, poses, dt, substeps, ftl_damping, integrity_model,
+                               angular, angular_reaction, implicit_angular, geometric_stiffness, inextensibility,
+                               hermite, finish_pose)
 
 
-def _frame_kernel(state, external_force, model, poses, *settings):
+_SETTINGS = 10  # dt ... hermite: the op's scalar arguments before finish_pose
+
+
+def _split(settings_and_finish) -> tuple:
+    """(settings, finish_pose or None for [])."""
+    finish = settings_and_finish[_SETTINGS] if len(settings_and_finish) > _SETTINGS else None
+    return settings_and_finish[:_SETTINGS], (list(finish) if finish else None)
+
+
+def _frame_finish_torch(state, external_force, model, poses, *settings_and_finish):
+    settings, finish_pose = _split(settings_and_finish)
+    x, v = _frame_torch(state, external_force, model, poses, *settings)
+    if finish_pose is None:
+        return x, v, x.new_empty(0)
+    return (x,) + _finish_torch(x, v, model[MODEL_FIELDS.index("num_pinned")], finish_pose)
+
+
+def _frame_kernel(state, external_force, model, poses, *settings_and_finish):
     ns = _namespace(state[0], _all_tensors(state, external_force, model, poses))
     if ns is None:
-        return _frame_torch(state, external_force, model, poses, *settings)
-    return tuple(ns.frame(state, external_force, model, poses, *settings, -1))
+        return _frame_finish_torch(state, external_force, model, poses, *settings_and_finish)
+    settings, finish_pose = _split(settings_and_finish)
+    if finish_pose is None:
+        x, v = ns.frame(state, external_force, model, poses, *settings, -1)
+        return x, v, x.new_empty(0)
+    return tuple(ns.frame_finish(state, external_force, model, poses, *settings, -1, finish_pose))
 
 
 frame_dynamics_op.register_kernel("cpu")(_frame_kernel)
@@ -201,10 +229,11 @@ frame_dynamics_op.register_kernel("cuda")(_frame_kernel)
 
 
 @frame_dynamics_op.register_fake
-def _frame_fake(state, external_force, model, poses, *settings):
+def _frame_fake(state, external_force, model, poses, *settings_and_finish):
     x = state[0]
+    speed = x.new_empty(0) if _split(settings_and_finish)[1] is None else x.new_empty(x.shape[:-1])
     return torch.empty_like(x, memory_format=torch.contiguous_format), \
-        torch.empty_like(x, memory_format=torch.contiguous_format)
+        torch.empty_like(x, memory_format=torch.contiguous_format), speed
 
 
 @torch.library.custom_op("ams_torch::frame_assembly", mutates_args=())
@@ -275,21 +304,34 @@ def op_arguments(model: Model, coeffs: Coefficients, config: Config, x: torch.Te
 
 def native_frame_dynamics(model: Model, coeffs: Coefficients, config: Config, x: torch.Tensor, v: torch.Tensor,
                           ghost_rest: torch.Tensor, sag_offset: torch.Tensor, pose0: Pose, pose1: Pose, hermite: bool,
-                          time: torch.Tensor, external_force: ExternalForce = None) -> tuple:
+                          time: torch.Tensor, external_force: ExternalForce = None,
+                          finish: Optional[Pose] = None, pinned: Optional[torch.Tensor] = None) -> tuple:
     """One frame of strand dynamics by the fused native kernel; same arguments and result as
     :func:`ams_torch.sim.dynamics.frame_dynamics` (x, v, ghost_rest, sag_offset: (..., S, N, 3) m,
     m/s, m, m; poses with velocities; time () s, unused natively; external_force (..., S, N, 3) N,
     or broadcastable to it). Returns (x, v), each (..., S, N, 3).
 
+    ``finish``: the head at the end of the frame, to fuse the frame's end in (when nothing runs
+    after the dynamics: :func:`ams_torch.sim.finish.pin_and_speed` with ``pinned`` (S, N) bool):
+    returns (x, v, speed) as ``pin_and_speed`` gives them after the dynamics.
+
     Inputs that :func:`native_frame_supported` rejects (a callable external force, a gradient to
     keep, another dtype or device) go to ``frame_dynamics`` itself. One registered op per frame:
     traceable by ``torch.compile(fullgraph=True)``, no host synchronisation.
     """
+    fused = finish is not None and finish.has_velocity and not (
+        torch.is_grad_enabled() and any(t.requires_grad for t in (finish.translation, finish.linear_velocity,
+                                                                  finish.angular_velocity)))
     if not native_frame_supported(model, coeffs, x, v, ghost_rest, sag_offset, pose0, pose1, external_force):
-        return frame_dynamics(model, coeffs, config, x, v, ghost_rest, sag_offset, pose0, pose1, hermite, time,
-                              external_force)
+        out = frame_dynamics(model, coeffs, config, x, v, ghost_rest, sag_offset, pose0, pose1, hermite, time,
+                             external_force)
+        return out if finish is None else (out[0],) + pin_and_speed(*out, pinned, finish)
     args = op_arguments(model, coeffs, config, x, v, ghost_rest, sag_offset, pose0, pose1, hermite, external_force)
-    return frame_dynamics_op(*args)
+    if not fused:
+        x, v, _ = frame_dynamics_op(*args, [])
+        return (x, v) if finish is None else (x,) + pin_and_speed(x, v, pinned, finish)
+    (_, t, lin, ang), _ = _pose_tensors(finish, x)
+    return frame_dynamics_op(*args, [t, lin, ang])
 
 
 def native_frame_assembly(model: Model, coeffs: Coefficients, config: Config, x: torch.Tensor, v: torch.Tensor,
@@ -345,28 +387,6 @@ def native_collisions_supported(model: Model, x: torch.Tensor, v: torch.Tensor, 
         if any(t.requires_grad for t in tensors):
             return False
     return True
-
-
-def _as(t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    return t if t.dtype == x.dtype and t.device == x.device else t.to(device=x.device, dtype=x.dtype)
-
-
-def _pose_tensors(pose: Optional[Pose], x: torch.Tensor) -> tuple:
-    """[R, t, lin, ω] for the op (batch () or x's scenes) and whether the pose has velocities."""
-    batch = x.shape[:-3]
-    if pose is None:
-        pose = Pose.identity(device=x.device, dtype=x.dtype)
-    r, t = _as(pose.rotation, x), _as(pose.translation, x)
-    vel = pose.has_velocity
-    lin, ang = (_as(pose.linear_velocity, x), _as(pose.angular_velocity, x)) if vel else (t, t)
-    out = []
-    for a, tail in ((r, 2), (t, 1), (lin, 1), (ang, 1)):
-        if tuple(a.shape[:-tail]) not in ((), tuple(batch)):  # a prefix of the scene dims: broadcast
-            own = a.shape[:-tail]
-            a = a.reshape(own + (1,) * (len(batch) - len(own)) + a.shape[-tail:]).expand(
-                batch + a.shape[-tail:]).contiguous()
-        out.append(a)
-    return out, vel
 
 
 def collision_arguments(model: Model, config: Config, x: torch.Tensor, v: torch.Tensor, head_pose: Pose,

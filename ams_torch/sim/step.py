@@ -96,11 +96,13 @@ def _nonfinite(*tensors) -> torch.Tensor:
 
 
 def _finish(model: Model, config: Config, state: State, control: Control, x, v, pose: Pose,
-            native: bool = False) -> tuple:
+            native: bool = False, speed: Optional[torch.Tensor] = None) -> tuple:
     """The end of a frame: pinned particles take the head's rigid velocity, and the divergence
-    flag is updated (device-side; :mod:`ams_torch.sim.finish`, its fused kernel when ``native``).
+    flag is updated (device-side; :mod:`ams_torch.sim.finish`, its fused kernel when ``native``;
+    ``speed`` given: v is already finished, fused into the dynamics' kernel).
     Returns (v, diverged_frame, diverged_input)."""
-    v, speed = (native_finish(model, x, v, pose) if native else pin_and_speed(x, v, model.pinned, pose))
+    if speed is None:
+        v, speed = (native_finish(model, x, v, pose) if native else pin_and_speed(x, v, model.pinned, pose))
     # NaN/Inf in x or v makes the largest relative speed NaN (amax propagates it), and NaN <= limit
     # is False: one comparison catches both non-finite and exploding particles
     bad = ~(speed.amax() <= config.max_relative_speed)
@@ -158,10 +160,16 @@ def step(model: Model, state: State, control: Control, config: Config, timer=Non
     time = state.time if control.time is None else control.time
     backend = stage_backend(config, state, coeffs, control, pose1)
     native = backend == "native"  # the fused kernels (they keep the torch definition for what they cannot run)
-    dynamics = native_frame_dynamics if native else frame_dynamics
+    speed = None
     with stage("dynamics"):
-        x, v = dynamics(model, coeffs, config, state.x, state.v, state.ghost_rest, state.sag_offset, pose0, pose1,
-                        hermite, time, control.external_force)
+        args = (model, coeffs, config, state.x, state.v, state.ghost_rest, state.sag_offset, pose0, pose1, hermite,
+                time, control.external_force)
+        if not native:
+            x, v = frame_dynamics(*args)
+        elif config.hair_hair or config.colliders:
+            x, v = native_frame_dynamics(*args)
+        else:  # nothing runs after the dynamics: the frame's end is fused into its kernel
+            x, v, speed = native_frame_dynamics(*args, finish=pose1, pinned=model.pinned)
     if config.hair_hair:
         with stage("hair_hair"):
             x, v = hair_hair_stage(model.hair_hair, x, v, coeffs.mass, pose1, dt, ~model.pinned,
@@ -169,7 +177,7 @@ def step(model: Model, state: State, control: Control, config: Config, timer=Non
     if config.colliders:
         with stage("collisions"):
             x, v = collisions(model, config, x, v, pose1, control.collider_poses, native)
-    v, diverged_frame, diverged_input = _finish(model, config, state, control, x, v, pose1, native)
+    v, diverged_frame, diverged_input = _finish(model, config, state, control, x, v, pose1, native, speed)
     ghost_rest = state.ghost_rest
     if config.nonhookean:
         ghost_rest = plastic_update(model, coeffs, x, ghost_rest, state.sag_offset, pose1)

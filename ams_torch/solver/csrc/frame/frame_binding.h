@@ -20,6 +20,10 @@
 //   assemble_substep = k >= 0: returns substep k's system assembled at the given (x, v):
 //            blocks (..., S, N, 4, 3, 3) and rhs (..., S, N, 3) (the parity tests' debug mode).
 //
+//   frame_finish(<the arguments of frame>, Tensor[] finish_pose) -> (Tensor, Tensor, Tensor)
+//   the frame (assemble_substep must be -1), then the frame's end of `finish` below on its
+//   result, fused: returns x', v' (pinned particles at the head's rigid velocity) and the speed.
+//
 //   finish(Tensor x, Tensor v, Tensor num_pinned, Tensor[] pose) -> (Tensor, Tensor)
 //   (finish.h; the Python op ams_torch::finish in ams_torch/sim/finish.py)
 //   x, v: (..., S, N, 3); num_pinned (S,) int64; pose: [translation (P.., 3), linear_velocity,
@@ -47,6 +51,11 @@ constexpr const char* kFrameSchema =
     "float ftl_damping, int integrity_model, bool angular, bool angular_reaction, bool implicit_angular, "
     "bool geometric_stiffness, bool inextensibility, bool hermite, int assemble_substep) -> (Tensor, Tensor)";
 
+constexpr const char* kFrameFinishSchema =
+    "frame_finish(Tensor[] state, Tensor? external_force, Tensor[] model, Tensor[] poses, float dt, int substeps, "
+    "float ftl_damping, int integrity_model, bool angular, bool angular_reaction, bool implicit_angular, "
+    "bool geometric_stiffness, bool inextensibility, bool hermite, int assemble_substep, Tensor[] finish_pose) "
+    "-> (Tensor, Tensor, Tensor)";
 constexpr const char* kFinishSchema =
     "finish(Tensor x, Tensor v, Tensor num_pinned, Tensor[] pose) -> (Tensor, Tensor)";
 
@@ -195,6 +204,30 @@ inline std::tuple<at::Tensor, at::Tensor> frame_outputs(const FrameInputs& in) {
   return {at::empty(shape, opts), at::empty(x.sizes(), opts)};
 }
 
+// The finish pose [translation, linear_velocity, angular_velocity], each (P.., 3) with P = 1 or
+// `scenes`, validated against x (device, dtype) and made contiguous.
+inline void check_finish_pose(const char* op, at::TensorList pose, int64_t scenes, const at::Tensor& x,
+                              at::Tensor* translation, at::Tensor* linear, at::Tensor* angular,
+                              int64_t* pose_scenes) {
+  TORCH_CHECK(pose.size() == 3, op, ": pose must be [translation, linear_velocity, angular_velocity], got ",
+              pose.size(), " tensors");
+  static const char* kNames[3] = {"translation", "linear_velocity", "angular_velocity"};
+  const int64_t p = pose[0].numel() / 3;
+  TORCH_CHECK(p == 1 || p == scenes, op, ": translation holds ", p, " poses for ", scenes,
+              " scenes (give one, or one per scene)");
+  *pose_scenes = p;
+  at::Tensor* dst[3] = {translation, linear, angular};
+  for (int q = 0; q < 3; ++q) {
+    TORCH_CHECK(pose[q].numel() == 3 * p && pose[q].dim() >= 1 && pose[q].size(-1) == 3, op, ": ", kNames[q],
+                " must hold ", p, " vectors, got shape ", pose[q].sizes());
+    TORCH_CHECK(pose[q].device() == x.device(), op, ": ", kNames[q], " is on ", pose[q].device(), ", x on ",
+                x.device());
+    TORCH_CHECK(pose[q].scalar_type() == x.scalar_type(), op, ": ", kNames[q], " must be ", x.scalar_type(),
+                ", got ", pose[q].scalar_type());
+    *dst[q] = pose[q].contiguous();
+  }
+}
+
 // Validated, contiguous inputs of one finish call and its outputs (v', speed).
 struct FinishInputs {
   at::Tensor x, v, num_pinned, translation, linear, angular, v_out, speed;
@@ -207,8 +240,6 @@ inline FinishInputs check_finish_inputs(const char* op, const at::Tensor& x, con
   const auto dtype = x.scalar_type();
   TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, op, ": float32 or float64 only, got ", dtype);
   check_shape(op, v, "v", x.sizes());
-  TORCH_CHECK(pose.size() == 3, op, ": pose must be [translation, linear_velocity, angular_velocity], got ",
-              pose.size(), " tensors");
   FinishInputs in;
   in.strands = x.size(-3);
   in.particles = x.size(-2);
@@ -222,21 +253,29 @@ inline FinishInputs check_finish_inputs(const char* op, const at::Tensor& x, con
   in.x = same(x, "x", dtype);
   in.v = same(v, "v", dtype);
   in.num_pinned = same(num_pinned, "num_pinned", at::kLong);
-  static const char* kNames[3] = {"translation", "linear_velocity", "angular_velocity"};
-  const int64_t p = pose[0].numel() / 3;
-  TORCH_CHECK(p == 1 || p == in.scenes, op, ": translation holds ", p, " poses for ", in.scenes,
-              " scenes (give one, or one per scene)");
-  in.pose_scenes = p;
-  at::Tensor* dst[3] = {&in.translation, &in.linear, &in.angular};
-  for (int q = 0; q < 3; ++q) {
-    TORCH_CHECK(pose[q].numel() == 3 * p && pose[q].size(-1) == 3, op, ": ", kNames[q], " must hold ", p,
-                " vectors, got shape ", pose[q].sizes());
-    *dst[q] = same(pose[q], kNames[q], dtype);
-  }
+  check_finish_pose(op, pose, in.scenes, x, &in.translation, &in.linear, &in.angular, &in.pose_scenes);
   const auto opts = x.options().memory_format(at::MemoryFormat::Contiguous);
   in.v_out = at::empty(x.sizes(), opts);
   in.speed = at::empty(x.sizes().slice(0, x.dim() - 1), opts);
   return in;
+}
+
+// The frame's end fused into a frame (frame_finish): on the frame's outputs x', v', v' updated in
+// place (each particle's v is read before it is written), speed allocated here.
+inline FinishInputs fused_finish_inputs(const char* op, const FrameInputs& in, const at::Tensor& x,
+                                        const at::Tensor& v, at::TensorList pose) {
+  TORCH_CHECK(in.assemble_substep < 0, op, ": the frame's end needs a whole frame (assemble_substep = -1)");
+  FinishInputs f;
+  f.scenes = in.scenes;
+  f.strands = in.strands;
+  f.particles = in.particles;
+  f.x = x;
+  f.v = v;
+  f.v_out = v;
+  f.num_pinned = in.model[kNumPinned];
+  check_finish_pose(op, pose, in.scenes, x, &f.translation, &f.linear, &f.angular, &f.pose_scenes);
+  f.speed = at::empty(x.sizes().slice(0, x.dim() - 1), x.options().memory_format(at::MemoryFormat::Contiguous));
+  return f;
 }
 
 template <class T>

@@ -12,7 +12,9 @@
 // real strand. The M + 1 substep head poses of every scene are computed once per call.
 //
 // Op `ams_torch_frame_cpu::finish` (finish.h): the frame's end, pinned velocities and speeds
-// relative to the head, one pass over the particles, parallel over strands.
+// relative to the head, one pass over the particles, parallel over strands; and
+// `ams_torch_frame_cpu::frame_finish`, the frame with its end fused in (each group's results are
+// finished as soon as they are copied out).
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
@@ -74,7 +76,8 @@ using banded::deinterleave;
 using banded::interleave;
 
 template <class T>
-void run_frame(const FrameArgs<T>& args, const FrameSettings& cfg, int64_t assemble_substep, T* out0, T* out1) {
+void run_frame(const FrameArgs<T>& args, const FrameSettings& cfg, int64_t assemble_substep, T* out0, T* out1,
+               const FinishArgs<T>* fin = nullptr) {
   using V = typename banded::LaneVec<T>::type;
   constexpr int64_t W = int64_t(sizeof(V) / sizeof(T));
   const int64_t B = args.scenes, S = args.strands, N = args.particles, M = cfg.substeps;
@@ -171,6 +174,8 @@ void run_frame(const FrameArgs<T>& args, const FrameSettings& cfg, int64_t assem
         deinterleave<T, W>(dst, sc + lay.x * W, 3 * N, lanes);
         for (int64_t l = 0; l < lanes; ++l) dst[l] = out1 + (b * S + s0 + l) * 3 * N;
         deinterleave<T, W>(dst, sc + lay.v * W, 3 * N, lanes);
+        if (fin != nullptr) // the frame's end on the group's results, while they are in cache
+          for (int64_t l = 0; l < lanes; ++l) finish_range(*fin, b * S + s0 + l, 0, N);
       }
     }
   });
@@ -192,6 +197,28 @@ std::tuple<at::Tensor, at::Tensor> frame_cpu(at::TensorList state, const std::op
                         std::get<0>(out).mutable_data_ptr<scalar_t>(), std::get<1>(out).mutable_data_ptr<scalar_t>());
   });
   return out;
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor> frame_finish_cpu(
+    at::TensorList state, const std::optional<at::Tensor>& ext, at::TensorList model, at::TensorList poses, double dt,
+    int64_t substeps, double ftl_damping, int64_t integrity_model, bool angular, bool angular_reaction,
+    bool implicit_angular, bool geometric_stiffness, bool inextensibility, bool hermite, int64_t assemble_substep,
+    at::TensorList finish_pose) {
+  constexpr const char* op = "ams_torch_frame_cpu::frame_finish";
+  const FrameInputs in = check_frame_inputs(op, state, ext, model, poses, dt, substeps, ftl_damping, integrity_model,
+                                            angular, angular_reaction, implicit_angular, geometric_stiffness,
+                                            inextensibility, hermite, assemble_substep);
+  TORCH_CHECK(in.state[kX].device().is_cpu(), op, ": CPU tensors expected");
+  auto out = frame_outputs(in);
+  const FinishInputs f = fused_finish_inputs(op, in, std::get<0>(out), std::get<1>(out), finish_pose);
+  if (in.scenes > 0 && in.strands > 0) {
+    AT_DISPATCH_FLOATING_TYPES(in.state[kX].scalar_type(), op, [&] {
+      const FinishArgs<scalar_t> fa = finish_args<scalar_t>(f);
+      run_frame<scalar_t>(frame_args<scalar_t>(in), in.settings, -1, std::get<0>(out).mutable_data_ptr<scalar_t>(),
+                          std::get<1>(out).mutable_data_ptr<scalar_t>(), &fa);
+    });
+  }
+  return {std::get<0>(out), std::get<1>(out), f.speed};
 }
 
 std::tuple<at::Tensor, at::Tensor> finish_cpu(const at::Tensor& x, const at::Tensor& v, const at::Tensor& num_pinned,
@@ -217,10 +244,12 @@ std::tuple<at::Tensor, at::Tensor> finish_cpu(const at::Tensor& x, const at::Ten
 
 TORCH_LIBRARY(ams_torch_frame_cpu, m) {
   m.def(ams_torch::frame::kFrameSchema);
+  m.def(ams_torch::frame::kFrameFinishSchema);
   m.def(ams_torch::frame::kFinishSchema);
 }
 
 TORCH_LIBRARY_IMPL(ams_torch_frame_cpu, CPU, m) {
   m.impl("frame", &ams_torch::frame::frame_cpu);
+  m.impl("frame_finish", &ams_torch::frame::frame_finish_cpu);
   m.impl("finish", &ams_torch::frame::finish_cpu);
 }

@@ -2,8 +2,8 @@
 // shapes in frame_binding.h). Built only against a CUDA torch (it needs torch's CUDA headers);
 // the kernels are in frame_cuda.cu, which nvcc compiles without torch headers. Runs on the
 // current CUDA stream of the inputs' device, with its workspace from torch's caching allocator;
-// no host synchronisation (capturable by CUDA graphs). Also op `ams_torch_frame_cuda::finish`
-// (finish.h, one launch).
+// no host synchronisation (capturable by CUDA graphs). Also ops `ams_torch_frame_cuda::finish`
+// (finish.h, one launch) and `frame_finish` (the frame, then the finish in place on its v').
 #include <ATen/Dispatch.h>
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
@@ -49,6 +49,35 @@ std::tuple<at::Tensor, at::Tensor> frame_cuda_op(at::TensorList state, const std
   return out;
 }
 
+std::tuple<at::Tensor, at::Tensor, at::Tensor> frame_finish_cuda_op(
+    at::TensorList state, const std::optional<at::Tensor>& ext, at::TensorList model, at::TensorList poses, double dt,
+    int64_t substeps, double ftl_damping, int64_t integrity_model, bool angular, bool angular_reaction,
+    bool implicit_angular, bool geometric_stiffness, bool inextensibility, bool hermite, int64_t assemble_substep,
+    at::TensorList finish_pose) {
+  constexpr const char* op = "ams_torch_frame_cuda::frame_finish";
+  const FrameInputs in = check_frame_inputs(op, state, ext, model, poses, dt, substeps, ftl_damping, integrity_model,
+                                            angular, angular_reaction, implicit_angular, geometric_stiffness,
+                                            inextensibility, hermite, assemble_substep);
+  const at::Tensor& x = in.state[kX];
+  TORCH_CHECK(x.is_cuda(), op, ": CUDA tensors expected");
+  const c10::cuda::CUDAGuard guard(x.device());
+  auto out = frame_outputs(in);
+  const FinishInputs f = fused_finish_inputs(op, in, std::get<0>(out), std::get<1>(out), finish_pose);
+  if (in.scenes == 0 || in.strands == 0) return {std::get<0>(out), std::get<1>(out), f.speed};
+  at::Tensor workspace =
+      at::empty({frame_cuda_workspace_elems(in.scenes, in.strands, in.particles, substeps)}, x.options());
+  const cudaStream_t stream = c10::cuda::getCurrentCUDAStream(x.device().index()).stream();
+  cudaError_t err = cudaSuccess;
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), op, [&] {
+    err = frame_cuda<scalar_t>(frame_args<scalar_t>(in), in.settings, -1, std::get<0>(out).mutable_data_ptr<scalar_t>(),
+                               std::get<1>(out).mutable_data_ptr<scalar_t>(), workspace.mutable_data_ptr<scalar_t>(),
+                               stream);
+    if (err == cudaSuccess) err = finish_cuda<scalar_t>(finish_args<scalar_t>(f), stream); // in place on v'
+  });
+  TORCH_CHECK(err == cudaSuccess, op, ": kernel launch failed: ", cudaGetErrorString(err));
+  return {std::get<0>(out), std::get<1>(out), f.speed};
+}
+
 std::tuple<at::Tensor, at::Tensor> finish_cuda_op(const at::Tensor& x, const at::Tensor& v,
                                                   const at::Tensor& num_pinned, at::TensorList pose) {
   constexpr const char* op = "ams_torch_frame_cuda::finish";
@@ -69,10 +98,12 @@ std::tuple<at::Tensor, at::Tensor> finish_cuda_op(const at::Tensor& x, const at:
 
 TORCH_LIBRARY(ams_torch_frame_cuda, m) {
   m.def(ams_torch::frame::kFrameSchema);
+  m.def(ams_torch::frame::kFrameFinishSchema);
   m.def(ams_torch::frame::kFinishSchema);
 }
 
 TORCH_LIBRARY_IMPL(ams_torch_frame_cuda, CUDA, m) {
   m.impl("frame", &ams_torch::frame::frame_cuda_op);
+  m.impl("frame_finish", &ams_torch::frame::frame_finish_cuda_op);
   m.impl("finish", &ams_torch::frame::finish_cuda_op);
 }
