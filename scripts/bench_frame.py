@@ -221,6 +221,38 @@ def run_case(scene: str, strands: int, args, head, grid, paths) -> list:
     return records
 
 
+def _targets(by: dict) -> list:
+    """The issue's CPU targets against this run's records (where the run has the rows)."""
+    def total(scene, s, path):
+        return by.get((scene, s, path), {}).get("total")
+
+    rows = []
+    d = total("default", 1000, "native")
+    if d:
+        rows.append(f"| default scene, every stage, ms/frame | ≤ 16 (aim ≤ 6) | {d['median_ms']:.2f} median, "
+                    f"{d['min_ms']:.2f} min | {'met' if d['median_ms'] <= 16 else 'not met'}"
+                    f"{'' if d['median_ms'] <= 6 else ' (the aim: not)'} |")
+    n, t = total("dynamics", 10000, "native"), total("dynamics", 10000, "torch")
+    if n and t:
+        ratio, ratio_min = t["median_ms"] / n["median_ms"], t["min_ms"] / n["min_ms"]
+        rows.append(f"| dynamics only 10k × 32, torch / native | ≥ 25× | {ratio:.1f}× median, {ratio_min:.1f}× min "
+                    f"| {'met' if ratio >= 25 else 'not met'} |")
+    natives = [st["total"] for (_, _, path), st in by.items() if path == "native"]
+    if natives:
+        worst = max(r["computing_ops_per_frame"] for r in natives)
+        dispatched = max(r["ops_per_frame"] for r in natives)
+        rows.append(f"| ops per frame, native, any S | ≤ 40 | {worst} computing ({dispatched} dispatched, views "
+                    f"included) | {'met' if worst <= 40 else 'not met'} |")
+    big = [st["total"] for (_, s, path), st in by.items() if path == "native" and s >= 100000]
+    peak = [r["peak_bytes_per_particle"] for r in big if r["peak_bytes_per_particle"] == r["peak_bytes_per_particle"]]
+    if peak:
+        rows.append(f"| peak memory beyond the state at 100k × 32, B/particle | ≤ 300 | {max(peak):.0f} | "
+                    f"{'met' if max(peak) <= 300 else 'not met'} |")
+    if not rows:
+        return []
+    return ["", "## The issue's CPU targets", "", "| target | goal | this run | |", "|---|---|---|---|"] + rows
+
+
 def render(records: list, meta: dict, out: Path) -> None:
     lines = ["# Whole frames: the fused native path against the torch definition", "",
              f"Machine: {meta['machine']}. Device `{meta['device']}`, {meta['dtype']}. Command: `{meta['command']}` "
@@ -249,6 +281,7 @@ def render(records: list, meta: dict, out: Path) -> None:
         if path == "native" and (scene, s, "torch") in by:
             ratio = by[(scene, s, "torch")]["total"]["median_ms"] / st["total"]["median_ms"]
             lines.append(f"| {scene} | {s:,} | {ratio:.1f}× |")
+    lines += _targets(by)
     if meta.get("note"):
         lines += ["", meta["note"]]
     (out.parent / (out.name + ".md")).write_text("\n".join(lines) + "\n")
@@ -271,11 +304,18 @@ def main(argv=None) -> int:
     ap.add_argument("--system-malloc", action="store_true",
                     help="time with glibc's default malloc settings (default: keep freed memory, KEEP_FREED)")
     ap.add_argument("--note", default="")
+    ap.add_argument("--render", metavar="JSON", help="only rewrite the markdown of an earlier run's JSON")
     ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks" / "frame"))
     args = ap.parse_args(argv)
     if args.memory_probe:
         scene, strands, path = args.memory_probe
         print(memory_probe(scene, int(strands), path, args.device, args.dtype, args.resolution))
+        return 0
+    if args.render:
+        saved = json.loads(Path(args.render).read_text())
+        if args.note:
+            saved["meta"]["note"] = args.note
+        render(saved["records"], saved["meta"], Path(args.render).with_suffix(""))
         return 0
     if args.quick:
         args.strands, args.reps, args.scenes = [250, 1000], 2, ["dynamics", "every_stage"]
@@ -310,7 +350,7 @@ def _malloc_setting() -> str:
 def _reexec_keeping_freed_memory(argv) -> None:
     """Re-execute this script with KEEP_FREED in the environment (Linux; glibc reads it at
     start-up), unless it is already set, ``--system-malloc`` is given, or this is a probe."""
-    if not sys.platform.startswith("linux") or "--system-malloc" in argv or "--memory-probe" in argv:
+    if not sys.platform.startswith("linux") or {"--system-malloc", "--memory-probe", "--render"} & set(argv):
         return
     if _malloc_setting() != "glibc defaults":
         return

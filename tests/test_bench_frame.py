@@ -23,3 +23,8 @@ def test_bench_frame_smoke(tmp_path):
     assert all(r["min_ms"] > 0 and r["min_ms"] <= r["median_ms"] for r in records if r["stage"] == "total")
     md = (tmp_path / "frame.md").read_text()
     assert "| dynamics | 64 | native |" in md and "torch / native" in md
+    # the markdown can be re-rendered from the JSON alone, with the targets table
+    (tmp_path / "frame.md").unlink()
+    assert bench.main(["--render", str(tmp_path / "frame.json"), "--note", "a note"]) == 0
+    md = (tmp_path / "frame.md").read_text()
+    assert "| dynamics | 64 | native |" in md and "ops per frame, native" in md and md.rstrip().endswith("a note")
