@@ -1,4 +1,5 @@
-"""scripts/bench_frame.py runs (the benchmark itself is run by hand: docs/benchmarks/frame.md)."""
+"""scripts/bench_frame.py and scripts/parity_frames.py run (the full runs are by hand:
+docs/benchmarks/frame.md, docs/benchmarks/parity.md)."""
 import json
 
 from conftest import built_native, load_script
@@ -28,3 +29,16 @@ def test_bench_frame_smoke(tmp_path):
     assert bench.main(["--render", str(tmp_path / "frame.json"), "--note", "a note"]) == 0
     md = (tmp_path / "frame.md").read_text()
     assert "| dynamics | 64 | native |" in md and "ops per frame, native" in md and md.rstrip().endswith("a note")
+
+
+def test_parity_script_whole_runs_agree(tmp_path):
+    """scripts/parity_frames.py on a small version of the demo scene (head collisions, hair–hair,
+    its own motion; 40 strands, 8 frames, float64): native and torch runs, each fed its own
+    output, stay within 1e-10 m of each other for both materials."""
+    built_native("frame_cpu")
+    parity = load_script("parity_frames")
+    scene = str(parity.ROOT / "datasets" / "scenes" / "default.toml")
+    for material in parity.MATERIALS:
+        r = parity.compare(scene, strands=40, frames=8, material=material)
+        assert r["S"] == 40 and r["frames"] == 8 and len(r["per_frame_dx_m"]) == 8
+        assert r["max_dx_m"] <= 1e-10 and r["max_dv_mps"] <= 1e-8, (material, r["max_dx_m"], r["max_dv_mps"])
