@@ -55,6 +55,12 @@ def _mesh_key(vertices: np.ndarray, faces: np.ndarray, resolution: int, padding:
     return h.hexdigest()[:32]
 
 
+def _channels_last(volume: torch.Tensor) -> torch.Tensor:
+    """(nz, ny, nx, 4) contiguous copy of a (1, 4, nz, ny, nx) volume: the layout of the native
+    collision kernel, where one sample's σ and gradient share a cache line."""
+    return volume[0].permute(1, 2, 3, 0).contiguous()
+
+
 class SDFGrid:
     """A signed distance field sampled on a regular grid (metres, negative inside).
 
@@ -83,6 +89,7 @@ class SDFGrid:
         # (1, 4, nz, ny, nx): σ and its central-difference gradient, laid out for grid_sample
         grads = torch.gradient(values, spacing=self.spacing, edge_order=1)
         self._volume = torch.stack((values,) + tuple(grads), 0).permute(0, 3, 2, 1).contiguous()[None]
+        self._volume_last = _channels_last(self._volume)
 
     # -- construction ----------------------------------------------------------------------
     @staticmethod
@@ -201,6 +208,7 @@ class SDFGrid:
         out.origin = self.origin.to(device=device, dtype=dtype)
         out.upper = self.upper.to(device=device, dtype=dtype)
         out._volume = self._volume.to(device=device, dtype=dtype)
+        out._volume_last = _channels_last(out._volume)
         return out
 
     # -- sampling ----------------------------------------------------------------------

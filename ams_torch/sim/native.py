@@ -408,7 +408,7 @@ def collision_arguments(model: Model, config: Config, x: torch.Tensor, v: torch.
             nums = (col.radius, col.thickness, nan if col.cut_height is None else col.cut_height)
         else:
             grid = col.sdf
-            geom, nums = (grid._volume, grid.origin, grid.upper), (0.0, 0.0, 0.0)
+            geom, nums = (grid._volume_last, grid.origin, grid.upper), (0.0, 0.0, 0.0)
         tensors += [f] + [_as(g, x) for g in geom]
         pose_list, vel = _pose_tensors(pose, x)
         poses += pose_list
@@ -439,8 +439,9 @@ def _collider_views(tensors, ints, floats) -> list:
                 center=g0, _frame=g1, radius=f0, thickness=f1, cut_height=None if isnan(f2) else f2))
         else:
             grid = SDFGrid.__new__(SDFGrid)
-            grid._volume, grid.origin, grid.upper = g0, g1, g2
-            grid.values, grid.spacing = g0[0, 0].permute(2, 1, 0), nan
+            grid._volume_last, grid.origin, grid.upper = g0, g1, g2  # g0: (nz, ny, nx, 4)
+            grid._volume = g0.permute(3, 0, 1, 2)[None]
+            grid.values, grid.spacing = g0[..., 0].permute(2, 1, 0), nan
             fn = grid.distance_and_normal
         out.append(SimpleNamespace(distance_and_normal=fn, friction=friction, projection_iterations=iters))
     return out

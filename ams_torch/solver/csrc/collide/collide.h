@@ -47,7 +47,8 @@ constexpr int kMaxColliders = 16;
 //   plane: g0 point (3), g1 unit normal (3)
 //   hollow sphere: g0 center (3), g1 frame (3, 3) rows (e1, axis, e2);  f radius, thickness,
 //                  cut height (NaN: closed shell)
-//   mesh: g0 volume (4, nz, ny, nx) (σ, ∂σ/∂x, ∂σ/∂y, ∂σ/∂z), g1 box lower corner (3), g2 upper (3)
+//   mesh: g0 volume (nz, ny, nx, 4) (σ, ∂σ/∂x, ∂σ/∂y, ∂σ/∂z last: one sample's four values share a
+//         cache line), g1 box lower corner (3), g2 upper (3)
 // The pose (R (P, 3, 3), t, lin, ω (P, 3)) is the collider's world pose at the end of the frame,
 // P = 1 or one per scene; without velocity the collider is static.
 template <class T>
@@ -208,7 +209,7 @@ AMS_HD void trilinear4(const Prepared<T>& c, const V& ix, const V& iy, const V& 
   const V cx[2] = {x0, x1}, cy[2] = {y0, y1}, cz[2] = {z0, z1};
   const V zero = splat<V, T>(T(0));
   for (int ch = 0; ch < 4; ++ch) out[ch] = zero;
-  const int64_t plane = c.nx * c.ny, channel = plane * c.nz;
+  const int64_t plane = c.nx * c.ny;
   for (int corner = 0; corner < 8; ++corner) { // bit 0: x + 1, bit 1: y + 1, bit 2: z + 1
     const int bx = corner & 1, by = (corner >> 1) & 1, bz = (corner >> 2) & 1;
     const V w = wx[bx] * wy[by] * wz[bz];
@@ -220,7 +221,7 @@ AMS_HD void trilinear4(const Prepared<T>& c, const V& ix, const V& iy, const V& 
       yi = yi < c.ny - 1 ? yi : c.ny - 1;
       zi = zi < c.nz - 1 ? zi : c.nz - 1;
       const int64_t at = zi * plane + yi * c.nx + xi;
-      for (int ch = 0; ch < 4; ++ch) L::set(val[ch], l, c.volume[ch * channel + at]);
+      for (int ch = 0; ch < 4; ++ch) L::set(val[ch], l, c.volume[4 * at + ch]);
     }
     for (int ch = 0; ch < 4; ++ch) out[ch] = select(inb, out[ch] + val[ch] * w, out[ch]);
   }

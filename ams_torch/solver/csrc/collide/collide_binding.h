@@ -99,9 +99,8 @@ inline CollideInputs check_collide_inputs(const char* op, const at::Tensor& x, c
         TORCH_CHECK(t.numel() == want, op, ": collider ", c, " geometry tensor ", g, " must hold ", want,
                     " values, got ", t.sizes());
       } else if (want < 0) {
-        TORCH_CHECK(t.dim() >= 4 && t.size(-4) == 4 && t.numel() == 4 * t.size(-1) * t.size(-2) * t.size(-3) &&
-                        t.size(-1) >= 2 && t.size(-2) >= 2 && t.size(-3) >= 2,
-                    op, ": collider ", c, " volume must be (1, 4, nz, ny, nx), got ", t.sizes());
+        TORCH_CHECK(t.dim() == 4 && t.size(3) == 4 && t.size(0) >= 2 && t.size(1) >= 2 && t.size(2) >= 2, op,
+                    ": collider ", c, " volume must be (nz, ny, nx, 4) (channels last), got ", t.sizes());
       }
       in.tensors.push_back(t);
     }
@@ -146,9 +145,9 @@ CollideArgs<T> collide_args(const CollideInputs& in) {
     for (int q = 0; q < 3; ++q) k.f[q] = in.floats[3 * c + q];
     if (k.type == kMesh) {
       const at::Tensor& vol = in.tensors[4 * c + 1];
-      k.nz = vol.size(-3);
-      k.ny = vol.size(-2);
-      k.nx = vol.size(-1);
+      k.nz = vol.size(0);
+      k.ny = vol.size(1);
+      k.nx = vol.size(2);
     }
     k.rotation = in.poses[4 * c].const_data_ptr<T>();
     k.translation = in.poses[4 * c + 1].const_data_ptr<T>();
