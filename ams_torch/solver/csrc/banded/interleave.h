@@ -74,65 +74,53 @@ inline void transpose4(__m256d* r) {
 
 } // namespace detail
 
+#if defined(__AVX__)
+namespace detail {
+// One AVX register of T and its W×W transpose: 8 floats, or 4 doubles.
+inline __m256 load(const float* p) { return _mm256_loadu_ps(p); }
+inline __m256d load(const double* p) { return _mm256_loadu_pd(p); }
+inline void store(float* p, __m256 v) { _mm256_storeu_ps(p, v); }
+inline void store(double* p, __m256d v) { _mm256_storeu_pd(p, v); }
+inline void transpose(__m256* r) { transpose8(r); }
+inline void transpose(__m256d* r) { transpose4(r); }
+
+// Whether (T, W) is one full AVX register: the widths the register transposes handle.
+template <class T, int64_t W>
+constexpr bool kRegisterWidth = W * int64_t(sizeof(T)) == 32 && (sizeof(T) == 4 || sizeof(T) == 8);
+} // namespace detail
+#endif
+
 template <class T, int64_t W>
 inline void interleave(T* dst, const T* const* src, int64_t count) {
-  detail::interleave_scalar<T, W>(dst, src, 0, count);
+  int64_t e = 0;
+#if defined(__AVX__)
+  if constexpr (detail::kRegisterWidth<T, W>) {
+    for (; e + W <= count; e += W) {
+      decltype(detail::load(dst)) r[W];
+      for (int64_t l = 0; l < W; ++l) r[l] = detail::load(src[l] + e);
+      detail::transpose(r);
+      for (int64_t k = 0; k < W; ++k) detail::store(dst + (e + k) * W, r[k]);
+    }
+  }
+#endif
+  detail::interleave_scalar<T, W>(dst, src, e, count);
 }
 
 template <class T, int64_t W>
 inline void deinterleave(T* const* dst, const T* src, int64_t count, int64_t lanes) {
-  detail::deinterleave_scalar<T, W>(dst, src, 0, count, lanes);
-}
-
+  int64_t e = 0;
 #if defined(__AVX__)
-template <>
-inline void interleave<float, 8>(float* dst, const float* const* src, int64_t count) {
-  int64_t e = 0;
-  for (; e + 8 <= count; e += 8) {
-    __m256 r[8];
-    for (int l = 0; l < 8; ++l) r[l] = _mm256_loadu_ps(src[l] + e);
-    detail::transpose8(r);
-    for (int k = 0; k < 8; ++k) _mm256_storeu_ps(dst + (e + k) * 8, r[k]);
+  if constexpr (detail::kRegisterWidth<T, W>) {
+    for (; e + W <= count; e += W) {
+      decltype(detail::load(src)) r[W];
+      for (int64_t k = 0; k < W; ++k) r[k] = detail::load(src + (e + k) * W);
+      detail::transpose(r);
+      for (int64_t l = 0; l < lanes; ++l) detail::store(dst[l] + e, r[l]);
+    }
   }
-  detail::interleave_scalar<float, 8>(dst, src, e, count);
-}
-
-template <>
-inline void deinterleave<float, 8>(float* const* dst, const float* src, int64_t count, int64_t lanes) {
-  int64_t e = 0;
-  for (; e + 8 <= count; e += 8) {
-    __m256 r[8];
-    for (int k = 0; k < 8; ++k) r[k] = _mm256_loadu_ps(src + (e + k) * 8);
-    detail::transpose8(r);
-    for (int64_t l = 0; l < lanes; ++l) _mm256_storeu_ps(dst[l] + e, r[l]);
-  }
-  detail::deinterleave_scalar<float, 8>(dst, src, e, count, lanes);
-}
-
-template <>
-inline void interleave<double, 4>(double* dst, const double* const* src, int64_t count) {
-  int64_t e = 0;
-  for (; e + 4 <= count; e += 4) {
-    __m256d r[4];
-    for (int l = 0; l < 4; ++l) r[l] = _mm256_loadu_pd(src[l] + e);
-    detail::transpose4(r);
-    for (int k = 0; k < 4; ++k) _mm256_storeu_pd(dst + (e + k) * 4, r[k]);
-  }
-  detail::interleave_scalar<double, 4>(dst, src, e, count);
-}
-
-template <>
-inline void deinterleave<double, 4>(double* const* dst, const double* src, int64_t count, int64_t lanes) {
-  int64_t e = 0;
-  for (; e + 4 <= count; e += 4) {
-    __m256d r[4];
-    for (int k = 0; k < 4; ++k) r[k] = _mm256_loadu_pd(src + (e + k) * 4);
-    detail::transpose4(r);
-    for (int64_t l = 0; l < lanes; ++l) _mm256_storeu_pd(dst[l] + e, r[l]);
-  }
-  detail::deinterleave_scalar<double, 4>(dst, src, e, count, lanes);
-}
 #endif
+  detail::deinterleave_scalar<T, W>(dst, src, e, count, lanes);
+}
 
 } // namespace banded
 } // namespace ams_torch

@@ -23,6 +23,7 @@
 #include <algorithm>
 #include <cstdint>
 #include <cstdlib>
+#include <optional>
 #include <tuple>
 #include <vector>
 
@@ -181,6 +182,26 @@ void run_frame(const FrameArgs<T>& args, const FrameSettings& cfg, int64_t assem
   });
 }
 
+// Both frame ops: the frame (or one substep's system), and with `finish_pose` the frame's end
+// fused in (third output: the speeds; undefined without).
+std::tuple<at::Tensor, at::Tensor, at::Tensor> frame_impl(const char* op, const FrameInputs& in,
+                                                          const at::TensorList* finish_pose) {
+  TORCH_CHECK(in.state[kX].device().is_cpu(), op, ": CPU tensors expected");
+  at::Tensor out0, out1; // (not structured bindings: C++17 lambdas cannot capture them)
+  std::tie(out0, out1) = frame_outputs(in);
+  std::optional<FinishInputs> f;
+  if (finish_pose != nullptr) f = fused_finish_inputs(op, in, out0, out1, *finish_pose);
+  if (in.scenes > 0 && in.strands > 0) {
+    AT_DISPATCH_FLOATING_TYPES(in.state[kX].scalar_type(), "ams_torch_frame_cpu::frame", [&] {
+      std::optional<FinishArgs<scalar_t>> fa;
+      if (f) fa = finish_args<scalar_t>(*f);
+      run_frame<scalar_t>(frame_args<scalar_t>(in), in.settings, in.assemble_substep,
+                          out0.mutable_data_ptr<scalar_t>(), out1.mutable_data_ptr<scalar_t>(), fa ? &*fa : nullptr);
+    });
+  }
+  return {out0, out1, f ? f->speed : at::Tensor()};
+}
+
 std::tuple<at::Tensor, at::Tensor> frame_cpu(at::TensorList state, const std::optional<at::Tensor>& ext,
                                              at::TensorList model, at::TensorList poses, double dt, int64_t substeps,
                                              double ftl_damping, int64_t integrity_model, bool angular,
@@ -189,14 +210,8 @@ std::tuple<at::Tensor, at::Tensor> frame_cpu(at::TensorList state, const std::op
   const FrameInputs in = check_frame_inputs(kOp, state, ext, model, poses, dt, substeps, ftl_damping, integrity_model,
                                             angular, angular_reaction, implicit_angular, geometric_stiffness,
                                             inextensibility, hermite, assemble_substep);
-  TORCH_CHECK(in.state[kX].device().is_cpu(), kOp, ": CPU tensors expected");
-  auto out = frame_outputs(in);
-  if (in.scenes == 0 || in.strands == 0) return out;
-  AT_DISPATCH_FLOATING_TYPES(in.state[kX].scalar_type(), kOp, [&] {
-    run_frame<scalar_t>(frame_args<scalar_t>(in), in.settings, in.assemble_substep,
-                        std::get<0>(out).mutable_data_ptr<scalar_t>(), std::get<1>(out).mutable_data_ptr<scalar_t>());
-  });
-  return out;
+  const auto out = frame_impl(kOp, in, nullptr);
+  return {std::get<0>(out), std::get<1>(out)};
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> frame_finish_cpu(
@@ -208,17 +223,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> frame_finish_cpu(
   const FrameInputs in = check_frame_inputs(op, state, ext, model, poses, dt, substeps, ftl_damping, integrity_model,
                                             angular, angular_reaction, implicit_angular, geometric_stiffness,
                                             inextensibility, hermite, assemble_substep);
-  TORCH_CHECK(in.state[kX].device().is_cpu(), op, ": CPU tensors expected");
-  auto out = frame_outputs(in);
-  const FinishInputs f = fused_finish_inputs(op, in, std::get<0>(out), std::get<1>(out), finish_pose);
-  if (in.scenes > 0 && in.strands > 0) {
-    AT_DISPATCH_FLOATING_TYPES(in.state[kX].scalar_type(), op, [&] {
-      const FinishArgs<scalar_t> fa = finish_args<scalar_t>(f);
-      run_frame<scalar_t>(frame_args<scalar_t>(in), in.settings, -1, std::get<0>(out).mutable_data_ptr<scalar_t>(),
-                          std::get<1>(out).mutable_data_ptr<scalar_t>(), &fa);
-    });
-  }
-  return {std::get<0>(out), std::get<1>(out), f.speed};
+  return frame_impl(op, in, &finish_pose);
 }
 
 std::tuple<at::Tensor, at::Tensor> finish_cpu(const at::Tensor& x, const at::Tensor& v, const at::Tensor& num_pinned,

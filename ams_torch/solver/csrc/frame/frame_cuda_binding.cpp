@@ -20,6 +20,33 @@
 namespace ams_torch {
 namespace frame {
 
+// Both frame ops: the frame (or one substep's system), and with `finish_pose` the frame's end
+// fused in, in place on v' after the frame (third output: the speeds; undefined without).
+std::tuple<at::Tensor, at::Tensor, at::Tensor> frame_impl(const char* op, const FrameInputs& in,
+                                                          const at::TensorList* finish_pose) {
+  const at::Tensor& x = in.state[kX];
+  TORCH_CHECK(x.is_cuda(), op, ": CUDA tensors expected");
+  const c10::cuda::CUDAGuard guard(x.device());
+  at::Tensor out0, out1; // (not structured bindings: C++17 lambdas cannot capture them)
+  std::tie(out0, out1) = frame_outputs(in);
+  std::optional<FinishInputs> f;
+  if (finish_pose != nullptr) f = fused_finish_inputs(op, in, out0, out1, *finish_pose);
+  const at::Tensor speed = f ? f->speed : at::Tensor();
+  if (in.scenes == 0 || in.strands == 0) return {out0, out1, speed};
+  at::Tensor workspace =
+      at::empty({frame_cuda_workspace_elems(in.scenes, in.strands, in.particles, in.settings.substeps)}, x.options());
+  const cudaStream_t stream = c10::cuda::getCurrentCUDAStream(x.device().index()).stream();
+  cudaError_t err = cudaSuccess;
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "ams_torch_frame_cuda::frame", [&] {
+    err = frame_cuda<scalar_t>(frame_args<scalar_t>(in), in.settings, in.assemble_substep,
+                               out0.mutable_data_ptr<scalar_t>(), out1.mutable_data_ptr<scalar_t>(),
+                               workspace.mutable_data_ptr<scalar_t>(), stream);
+    if (err == cudaSuccess && f) err = finish_cuda<scalar_t>(finish_args<scalar_t>(*f), stream);
+  });
+  TORCH_CHECK(err == cudaSuccess, op, ": kernel launch failed: ", cudaGetErrorString(err));
+  return {out0, out1, speed};
+}
+
 std::tuple<at::Tensor, at::Tensor> frame_cuda_op(at::TensorList state, const std::optional<at::Tensor>& ext,
                                                  at::TensorList model, at::TensorList poses, double dt,
                                                  int64_t substeps, double ftl_damping, int64_t integrity_model,
@@ -30,23 +57,8 @@ std::tuple<at::Tensor, at::Tensor> frame_cuda_op(at::TensorList state, const std
   const FrameInputs in = check_frame_inputs(op, state, ext, model, poses, dt, substeps, ftl_damping, integrity_model,
                                             angular, angular_reaction, implicit_angular, geometric_stiffness,
                                             inextensibility, hermite, assemble_substep);
-  const at::Tensor& x = in.state[kX];
-  TORCH_CHECK(x.is_cuda(), op, ": CUDA tensors expected");
-  const c10::cuda::CUDAGuard guard(x.device());
-  auto out = frame_outputs(in);
-  if (in.scenes == 0 || in.strands == 0) return out;
-  at::Tensor workspace =
-      at::empty({frame_cuda_workspace_elems(in.scenes, in.strands, in.particles, substeps)}, x.options());
-  const cudaStream_t stream = c10::cuda::getCurrentCUDAStream(x.device().index()).stream();
-  cudaError_t err = cudaSuccess;
-  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), op, [&] {
-    err = frame_cuda<scalar_t>(frame_args<scalar_t>(in), in.settings, in.assemble_substep,
-                               std::get<0>(out).mutable_data_ptr<scalar_t>(),
-                               std::get<1>(out).mutable_data_ptr<scalar_t>(), workspace.mutable_data_ptr<scalar_t>(),
-                               stream);
-  });
-  TORCH_CHECK(err == cudaSuccess, op, ": kernel launch failed: ", cudaGetErrorString(err));
-  return out;
+  const auto out = frame_impl(op, in, nullptr);
+  return {std::get<0>(out), std::get<1>(out)};
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> frame_finish_cuda_op(
@@ -58,24 +70,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> frame_finish_cuda_op(
   const FrameInputs in = check_frame_inputs(op, state, ext, model, poses, dt, substeps, ftl_damping, integrity_model,
                                             angular, angular_reaction, implicit_angular, geometric_stiffness,
                                             inextensibility, hermite, assemble_substep);
-  const at::Tensor& x = in.state[kX];
-  TORCH_CHECK(x.is_cuda(), op, ": CUDA tensors expected");
-  const c10::cuda::CUDAGuard guard(x.device());
-  auto out = frame_outputs(in);
-  const FinishInputs f = fused_finish_inputs(op, in, std::get<0>(out), std::get<1>(out), finish_pose);
-  if (in.scenes == 0 || in.strands == 0) return {std::get<0>(out), std::get<1>(out), f.speed};
-  at::Tensor workspace =
-      at::empty({frame_cuda_workspace_elems(in.scenes, in.strands, in.particles, substeps)}, x.options());
-  const cudaStream_t stream = c10::cuda::getCurrentCUDAStream(x.device().index()).stream();
-  cudaError_t err = cudaSuccess;
-  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), op, [&] {
-    err = frame_cuda<scalar_t>(frame_args<scalar_t>(in), in.settings, -1, std::get<0>(out).mutable_data_ptr<scalar_t>(),
-                               std::get<1>(out).mutable_data_ptr<scalar_t>(), workspace.mutable_data_ptr<scalar_t>(),
-                               stream);
-    if (err == cudaSuccess) err = finish_cuda<scalar_t>(finish_args<scalar_t>(f), stream); // in place on v'
-  });
-  TORCH_CHECK(err == cudaSuccess, op, ": kernel launch failed: ", cudaGetErrorString(err));
-  return {std::get<0>(out), std::get<1>(out), f.speed};
+  return frame_impl(op, in, &finish_pose);
 }
 
 std::tuple<at::Tensor, at::Tensor> finish_cuda_op(const at::Tensor& x, const at::Tensor& v,
