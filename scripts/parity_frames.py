@@ -29,10 +29,10 @@ import ams_torch as at  # noqa: E402
 from ams_torch._bench import machine, shown_args  # noqa: E402
 from ams_torch.apps.scene import build  # noqa: E402
 from ams_torch.apps.scene.schema import parse_scene  # noqa: E402
+from ams_torch.sim.params import PAPER_UNITS  # noqa: E402
 
-MATERIALS = {"per_length": {}, "per_particle": {"material": "per_particle", "particle_mass": 1.0,
-                                                "stretch_stiffness": 1e6, "integrity_stiffness": 1e2,
-                                                "angular_stiffness": 1e2, "drag": 1.5}}
+#: the scene's [params] changes per material: the library default, and Params.paper()'s constants
+MATERIALS = {"per_length": {}, "per_particle": dict(PAPER_UNITS)}
 
 
 def _scene(path: str, strands, frames, material: str) -> dict:

@@ -19,7 +19,7 @@ from ams_torch.geometry.pose import Pose
 from ams_torch.sim.op_support import NATIVE_DTYPES, pose_tensors
 from ams_torch.solver import build as _native
 
-__all__ = ["pin_and_speed", "native_finish", "finish_op"]
+__all__ = ["pin_and_speed", "native_finish", "native_finish_supported", "finish_op"]
 
 _KINDS = {"cpu": "frame_cpu", "cuda": "frame_cuda"}
 
@@ -84,15 +84,21 @@ def _finish_fake(x, v, num_pinned, pose):
     return torch.empty_like(v, memory_format=torch.contiguous_format), x.new_empty(x.shape[:-1])
 
 
+def native_finish_supported(x: torch.Tensor, v: torch.Tensor, pose: Pose) -> bool:
+    """Whether the finish kernels take these inputs (traceable: Python checks of dtypes, devices,
+    flags and ``requires_grad`` only): float32/float64 on CPU/CUDA, a pose with velocities, and
+    no gradient to keep."""
+    if x.dtype not in NATIVE_DTYPES or x.device.type not in _KINDS or not pose.has_velocity or v.dtype != x.dtype:
+        return False
+    tensors = (x, v, pose.translation, pose.linear_velocity, pose.angular_velocity)
+    return not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
+
+
 def native_finish(model, x: torch.Tensor, v: torch.Tensor, pose: Pose) -> tuple:
     """:func:`pin_and_speed` for ``model.pinned`` by the registered op (its native kernel when
     built). x, v: (..., S, N, 3) m, m/s; pose: the head at the end of the frame. Returns (v',
     speed) as :func:`pin_and_speed`. Traceable (Python checks of types and flags only)."""
-    if (x.dtype not in NATIVE_DTYPES or x.device.type not in _KINDS or not pose.has_velocity
-            or v.dtype != x.dtype):
-        return pin_and_speed(x, v, model.pinned, pose)
-    if torch.is_grad_enabled() and any(t.requires_grad for t in (x, v, pose.translation, pose.linear_velocity,
-                                                                  pose.angular_velocity)):
+    if not native_finish_supported(x, v, pose):
         return pin_and_speed(x, v, model.pinned, pose)
     (_, t, lin, ang), _ = pose_tensors(pose, x)
     return finish_op(x, v, model.num_pinned, [t, lin, ang])

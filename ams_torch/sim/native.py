@@ -46,7 +46,7 @@ from ams_torch.geometry.pose import Pose
 from ams_torch.geometry.sdf import SDFGrid
 from ams_torch.sim.contact import collisions_world
 from ams_torch.sim.dynamics import frame_dynamics, substep_system
-from ams_torch.sim.finish import _finish_torch, pin_and_speed
+from ams_torch.sim.finish import _finish_torch, native_finish_supported, pin_and_speed
 from ams_torch.sim.op_support import NATIVE_DTYPES, as_like as _as, pose_tensors as _pose_tensors
 from ams_torch.sim.model import Coefficients, Model
 from ams_torch.sim.state import Config, ExternalForce
@@ -319,9 +319,7 @@ def native_frame_dynamics(model: Model, coeffs: Coefficients, config: Config, x:
     keep, another dtype or device) go to ``frame_dynamics`` itself. One registered op per frame:
     traceable by ``torch.compile(fullgraph=True)``, no host synchronisation.
     """
-    fused = finish is not None and finish.has_velocity and not (
-        torch.is_grad_enabled() and any(t.requires_grad for t in (finish.translation, finish.linear_velocity,
-                                                                  finish.angular_velocity)))
+    fused = finish is not None and native_finish_supported(x, v, finish)
     if not native_frame_supported(model, coeffs, x, v, ghost_rest, sag_offset, pose0, pose1, external_force):
         out = frame_dynamics(model, coeffs, config, x, v, ghost_rest, sag_offset, pose0, pose1, hermite, time,
                              external_force)

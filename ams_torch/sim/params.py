@@ -7,7 +7,7 @@ from typing import Tuple, Union
 
 import torch
 
-__all__ = ["Params", "PARAM_PRESETS"]
+__all__ = ["Params", "PARAM_PRESETS", "PAPER_UNITS"]
 
 #: Named speed–accuracy presets for :meth:`Params.preset`, chosen from the measured Pareto fronts
 #: of ``scripts/bench_tradeoff.py`` (see docs/tradeoff.md for the numbers and the rule).
@@ -54,6 +54,11 @@ def _is_finite(v) -> bool:
     if isinstance(v, torch.Tensor):
         return bool(torch.isfinite(v.detach()).all())
     return math.isfinite(float(v))
+
+
+#: the Params fields of :meth:`Params.paper`: the paper's per-particle constants (SPEC §10)
+PAPER_UNITS = {"material": "per_particle", "particle_mass": 1.0, "stretch_stiffness": 1e6,
+               "integrity_stiffness": 1e2, "angular_stiffness": 1e2, "drag": 1.5}
 
 
 @dataclass
@@ -303,10 +308,7 @@ class Params:
     @staticmethod
     def paper(**changes) -> "Params":
         """The paper's units (SPEC §10): particle mass 1, κ_L = 1e6, κ_I = 1e2, κ_α = 1e2."""
-        base = dict(material="per_particle", particle_mass=1.0, stretch_stiffness=1e6, integrity_stiffness=1e2,
-                    angular_stiffness=1e2, drag=1.5)
-        base.update(changes)
-        return Params(**base)
+        return Params(**dict(PAPER_UNITS, **changes))
 
     @staticmethod
     def preset(name: str, **changes) -> "Params":
