@@ -74,14 +74,14 @@ step_mod = importlib.import_module("ams_torch.sim.step")
 dynamics_mod = importlib.import_module("ams_torch.sim.dynamics")
 from ams_torch.sim.dynamics import frame_dynamics, inextensibility, substep_poses, substep_targets, _external  # noqa: E402
 from ams_torch.sim.assembly import assemble_system  # noqa: E402
-from ams_torch.sim.forces import safe_normalize  # noqa: E402
+from ams_torch.sim.inextensibility import follow_the_leader as library_ftl  # noqa: E402
 from ams_torch.sim.model import coefficients  # noqa: E402
 from ams_torch.sim.state import State  # noqa: E402
 from ams_torch.sim.step import SimulationDiverged  # noqa: E402
 from ams_torch.solver.op import solve_banded  # noqa: E402
 from ams_torch.stages.collide import resolve_world_poses  # noqa: E402
 from ams_torch.stages.collide.poses import flat_pose  # noqa: E402
-from ams_torch.stages.collide.response import _rotate, _world_to_local, contact_response  # noqa: E402
+from ams_torch.stages.collide.response import collider_response  # noqa: E402
 
 SCENE = REPO / "datasets" / "scenes" / "roller_coaster.toml"
 NEAR = 1e-9  # m: a contact decision taken with |σ| below this is "at rounding level" (diagnostic only)
@@ -128,38 +128,12 @@ DEFAULT_OPTS = {"plastic": True, "contact_tol": 0.0, "skin": 0.0, "friction": No
                 "frame_ftl": True, "ftl_velocity": "dftl", "ftl_limit": 0.0}
 
 
-# ------------------------------------------------------------------ copies of the library step
-def follow_the_leader_limited(x, v, edge_rest_length, pinned, dt, damping, fallback_dir=None, *, limit=0.0):
-    """A copy of :func:`ams_torch.sim.inextensibility.follow_the_leader` that is a strain limiter:
-    each edge is brought back into [(1 − limit) l, (1 + limit) l] instead of onto l (limit = 0: the
-    library's exact projection), with the same velocity correction."""
-    n = x.shape[-2]
-    pinned = pinned if pinned.dim() == 2 else pinned.expand(x.shape[-3], n)
-    pts = [x[..., 0, :]]
-    corr = [torch.zeros_like(x[..., 0, :])]
-    for i in range(1, n):
-        xi = x[..., i, :]
-        d, length = safe_normalize(xi - pts[i - 1])
-        if fallback_dir is not None:
-            d = torch.where((length > 0)[..., None], d, fallback_dir[..., i - 1, :])
-        rest = edge_rest_length[..., i - 1]
-        target = torch.minimum(torch.maximum(length, (1 - limit) * rest), (1 + limit) * rest) if limit else rest
-        led = pts[i - 1] + target[..., None] * d
-        new = torch.where(pinned[:, i, None], xi, led)
-        pts.append(new)
-        corr.append(new - xi)
-    x_new = torch.stack(pts, -2)
-    c = torch.stack(corr, -2)
-    c_next = torch.cat((c[..., 1:, :], torch.zeros_like(c[..., :1, :])), -2)
-    free = (~pinned).to(x.dtype)[..., None]
-    return x_new, v + free * (c - damping * c_next) / dt
-
-
-
+# ------------------------------------------------------------------ variants of the library step
 def collide_variant(x, v, dt, colliders, world_poses, free=None, *, tol=0.0, skin=0.0, friction=None,
                     stats=None):
-    """A copy of :func:`ams_torch.stages.collide.response.collide` with two knobs: the contact test
-    is σ < −tol (library: tol = 0) and the push-out goes to σ = +skin (library: 0). ``stats``:
+    """:func:`ams_torch.stages.collide.response.collide` with the study knobs of its
+    ``collider_response``: the contact test is σ < −tol (library: tol = 0) and the push-out goes
+    to σ = +skin (library: 0). ``stats``:
     a dict counting the contact decisions taken (``tests``), the contacts (``inside``) and the
     decisions with |σ| < NEAR (``near``). ``friction``: replaces the colliders' μ (None: theirs).
     With tol = skin = 0 and friction None it is the library's arithmetic."""
@@ -173,30 +147,13 @@ def collide_variant(x, v, dt, colliders, world_poses, free=None, *, tol=0.0, ski
     if free is not None:
         free_k = torch.as_tensor(free, device=x.device).bool().expand(s_count, n_count).reshape(s_count * n_count)
     for col, pose in zip(colliders, world_poses):
-        rot, trans, lin, ang = flat_pose(pose, batch, x)
-        sigma, n_local = col.distance_and_normal(_world_to_local(xf, rot, trans))
-        inside = sigma < -tol if tol else sigma < 0
-        if free_k is not None:
-            inside = inside & free_k
+        xf, vf, sigma, inside = collider_response(col, flat_pose(pose, batch, x), xf, vf, dt, free_k, tol=tol,
+                                                  skin=skin, friction=friction)
         if stats is not None:
             f = free_k if free_k is not None else torch.ones_like(inside[0])
             stats["tests"] += int(f.sum()) * xf.shape[0]
             stats["inside"] += int(inside.sum())
             stats["near"] += int((((sigma + tol).abs() < NEAR) & f).sum())
-        n = _rotate(n_local, rot)
-        if lin is not None:
-            vc = lin[:, None, :] + torch.linalg.cross(ang[:, None, :].expand_as(xf), xf - trans[:, None, :], dim=-1)
-        else:
-            vc = torch.zeros_like(vf)
-        v_new = contact_response(vf, vc, n, col.friction if friction is None else friction)
-        x_new = xf + dt * (v_new - vf)
-        for _ in range(max(1, col.projection_iterations)):
-            s_new, nl_new = col.distance_and_normal(_world_to_local(x_new, rot, trans))
-            depth = (skin - s_new).clamp_min(0) if skin else (-s_new).clamp_min(0)
-            x_new = x_new + depth[..., None] * _rotate(nl_new, rot)
-        mask = inside[..., None]
-        xf = torch.where(mask, x_new, xf)
-        vf = torch.where(mask, v_new, vf)
     return xf.reshape(shape), vf.reshape(shape)
 
 
@@ -305,7 +262,7 @@ def patched_step(opts: dict | None, stats: dict):
     original, ftl = step_mod.step, dynamics_mod.follow_the_leader
     step_mod.step = functools.partial(step_variant, opts=opts, stats=stats)
     if opts["ftl_limit"]:
-        dynamics_mod.follow_the_leader = functools.partial(follow_the_leader_limited, limit=opts["ftl_limit"])
+        dynamics_mod.follow_the_leader = functools.partial(library_ftl, limit=opts["ftl_limit"])
     if opts["ftl_velocity"] == "none":  # positions projected, velocities left as they were
         inner = dynamics_mod.follow_the_leader
         dynamics_mod.follow_the_leader = lambda x, v, *a, **k: (inner(x, v, *a, **k)[0], v)

@@ -311,3 +311,36 @@ def test_ms_params_are_plain_mass_spring():
     assert p.integrity_rate == 0 and p.angular_rigidity == 0 and not p.sag_free
     with pytest.raises(ValueError, match="unknown Params field"):
         at.Params().replace(stiffness=1.0)
+
+
+def test_follow_the_leader_as_a_strain_limiter():
+    """``follow_the_leader(..., limit=ε)``: every free edge ends within [(1 − ε) l, (1 + ε) l],
+    edges already inside the band keep their length, and limit = 0 is the exact projection."""
+    from ams_torch.sim.inextensibility import follow_the_leader
+
+    g = torch.Generator().manual_seed(3)
+    s, n = 5, 9
+    rest = torch.full((s, n - 1), 0.01, dtype=torch.float64)
+    x = torch.cumsum(torch.randn(s, n, 3, generator=g, dtype=torch.float64), -2) * 0.01  # lengths ~1.7 l
+    v = torch.zeros_like(x)
+    pinned = torch.zeros(n, dtype=torch.bool)
+    pinned[0] = True
+
+    def lengths(y):
+        return (y[:, 1:] - y[:, :-1]).norm(dim=-1)
+
+    xe, _ = follow_the_leader(x, v, rest, pinned, 1 / 60, 1.0)
+    assert torch.allclose(lengths(xe), rest, rtol=1e-12, atol=0)
+    xl, vl = follow_the_leader(x, v, rest, pinned, 1 / 60, 1.0, limit=0.05)
+    ln = lengths(xl)
+    assert (ln >= 0.95 * rest * (1 - 1e-12)).all() and (ln <= 1.05 * rest * (1 + 1e-12)).all()
+    assert (ln > 1.04 * rest).any()  # the long edges stop at the band's edge, not at l
+    assert torch.isfinite(vl).all() and not torch.equal(xl, xe)
+    # a strand whose edges are all 1.02 l, inside the band: it stays where it is (not pulled to l)
+    d = torch.randn(s, n - 1, 3, generator=g, dtype=torch.float64)
+    y = torch.cat((torch.zeros(s, 1, 3, dtype=torch.float64), torch.cumsum(0.0102 * d / d.norm(dim=-1, keepdim=True),
+                                                                            -2)), -2)
+    yl, _ = follow_the_leader(y, v, rest, pinned, 1 / 60, 1.0, limit=0.05)
+    assert torch.allclose(yl, y, rtol=0, atol=1e-15)
+    ye, _ = follow_the_leader(y, v, rest, pinned, 1 / 60, 1.0)
+    assert torch.allclose(lengths(ye), rest, rtol=1e-12, atol=0)

@@ -19,7 +19,7 @@ __all__ = ["follow_the_leader", "max_stretch"]
 
 def follow_the_leader(x: torch.Tensor, v: torch.Tensor, edge_rest_length: torch.Tensor,
                       pinned: torch.Tensor, dt, damping: float,
-                      fallback_dir: Optional[torch.Tensor] = None):
+                      fallback_dir: Optional[torch.Tensor] = None, *, limit: float = 0.0):
     """Project every edge back to its rest length, root to tip, and correct the velocities.
 
     Args:
@@ -32,8 +32,12 @@ def follow_the_leader(x: torch.Tensor, v: torch.Tensor, edge_rest_length: torch.
         fallback_dir: (..., S, N−1, 3) unit directions used where an edge has collapsed
             to zero length (e.g. the rest directions carried by the head); without it
             such an edge stays collapsed. No NaN either way.
+        limit: 0 (default): each edge is projected onto its rest length l. > 0: a strain
+            limiter instead, each edge brought back into [(1 − limit) l, (1 + limit) l] with the
+            same velocity correction (scripts/roller_coaster_convergence.py studies it).
     Returns:
-        (x, v): (..., S, N, 3) each; every free edge has its rest length to rounding.
+        (x, v): (..., S, N, 3) each; with limit = 0 every free edge has its rest length to
+        rounding.
     """
     n = x.shape[-2]
     pinned = pinned if pinned.dim() == 2 else pinned.expand(x.shape[-3], n)
@@ -44,7 +48,10 @@ def follow_the_leader(x: torch.Tensor, v: torch.Tensor, edge_rest_length: torch.
         d, length = safe_normalize(xi - pts[i - 1])
         if fallback_dir is not None:
             d = torch.where((length > 0)[..., None], d, fallback_dir[..., i - 1, :])
-        led = pts[i - 1] + edge_rest_length[..., i - 1, None] * d
+        rest = edge_rest_length[..., i - 1]
+        if limit:
+            rest = torch.minimum(torch.maximum(length, (1 - limit) * rest), (1 + limit) * rest)
+        led = pts[i - 1] + rest[..., None] * d
         new = torch.where(pinned[:, i, None], xi, led)
         pts.append(new)
         corr.append(new - xi)

@@ -121,23 +121,41 @@ def collide(x: torch.Tensor, v: torch.Tensor, dt, colliders: Sequence[Collider],
                              f"{tuple(free.shape)}")
         free_k = free.expand(s_count, n_count).reshape(s_count * n_count)
     for col, pose in zip(colliders, world_poses):
-        rot, trans, lin, ang = flat_pose(pose, batch, x)
-        sigma, n_local = col.distance_and_normal(_world_to_local(xf, rot, trans))
-        inside = sigma < 0
-        if free_k is not None:
-            inside = inside & free_k
-        n = _rotate(n_local, rot)
-        if lin is not None:
-            vc = lin[:, None, :] + torch.linalg.cross(ang[:, None, :].expand_as(xf), xf - trans[:, None, :], dim=-1)
-        else:
-            vc = torch.zeros_like(vf)
-        v_new = contact_response(vf, vc, n, col.friction)
-        x_new = xf + dt * (v_new - vf)
-        for _ in range(max(1, col.projection_iterations)):
-            s_new, nl_new = col.distance_and_normal(_world_to_local(x_new, rot, trans))
-            depth = (-s_new).clamp_min(0)
-            x_new = x_new + depth[..., None] * _rotate(nl_new, rot)
-        mask = inside[..., None]
-        xf = torch.where(mask, x_new, xf)
-        vf = torch.where(mask, v_new, vf)
+        xf, vf, _, _ = collider_response(col, flat_pose(pose, batch, x), xf, vf, dt, free_k)
     return xf.reshape(shape), vf.reshape(shape)
+
+
+def collider_response(col: Collider, flat: tuple, xf: torch.Tensor, vf: torch.Tensor, dt, free_k=None, *,
+                      tol: float = 0.0, skin: float = 0.0, friction=None) -> tuple:
+    """One collider's part of :func:`collide`, on flattened particles.
+
+    Args:
+        col: the collider; flat: its world pose as :func:`~ams_torch.stages.collide.poses.flat_pose`
+            gives it (R (B, 3, 3), t (B, 3) m, linear (B, 3) m/s and angular (B, 3) rad/s
+            velocity, or None for a static collider).
+        xf, vf: (B, P, 3) m, m/s; dt: s; free_k: (P,) bool or None (all free).
+        tol, skin, friction: study knobs (scripts/roller_coaster_convergence.py); the defaults
+            are :func:`collide` itself: contact is σ < −tol, the push-out goes to σ = +skin, and
+            ``friction`` replaces the collider's μ when given.
+    Returns:
+        (x', v', σ, inside): (B, P, 3) m, m/s after the response; σ (B, P) m at the input
+        positions and inside (B, P) bool, the particles it moved.
+    """
+    rot, trans, lin, ang = flat
+    sigma, n_local = col.distance_and_normal(_world_to_local(xf, rot, trans))
+    inside = sigma < -tol if tol else sigma < 0
+    if free_k is not None:
+        inside = inside & free_k
+    n = _rotate(n_local, rot)
+    if lin is not None:
+        vc = lin[:, None, :] + torch.linalg.cross(ang[:, None, :].expand_as(xf), xf - trans[:, None, :], dim=-1)
+    else:
+        vc = torch.zeros_like(vf)
+    v_new = contact_response(vf, vc, n, col.friction if friction is None else friction)
+    x_new = xf + dt * (v_new - vf)
+    for _ in range(max(1, col.projection_iterations)):
+        s_new, nl_new = col.distance_and_normal(_world_to_local(x_new, rot, trans))
+        depth = (skin - s_new).clamp_min(0) if skin else (-s_new).clamp_min(0)
+        x_new = x_new + depth[..., None] * _rotate(nl_new, rot)
+    mask = inside[..., None]
+    return torch.where(mask, x_new, xf), torch.where(mask, v_new, vf), sigma, inside
