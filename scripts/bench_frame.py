@@ -3,6 +3,7 @@
     .venv/bin/python scripts/bench_frame.py                      # CPU → docs/benchmarks/frame.{md,json}
     .venv/bin/python scripts/bench_frame.py --device cuda --strands 10000 100000 --resolution 128
     .venv/bin/python scripts/bench_frame.py --quick --out /tmp/frame   # smoke test
+    .venv/bin/python scripts/bench_frame.py --scenes dynamics --strands 10000 --no-memory --profile 5 --out /tmp/f
 
 Scenes (N = 32 particles, the default head):
 
@@ -139,6 +140,19 @@ def ops_per_frame(case: dict, path: str, device) -> tuple:
     return ops, computing
 
 
+def profile_table(case: dict, path: str, device, frames: int) -> str:
+    """The profiler's operators of ``frames`` frames of one path, by self time (ms per call:
+    the native kernels' own cost, e.g. ``ams_torch_frame_cpu::frame_finish``)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if torch.device(device).type == "cuda" else [])
+    with profile(activities=acts) as prof:
+        for _ in range(frames):
+            frame(case, path, device)
+    key = "self_cuda_time_total" if torch.device(device).type == "cuda" else "self_cpu_time_total"
+    return prof.key_averages().table(sort_by=key, row_limit=10)
+
+
 def _rss(field: str) -> int:
     with open("/proc/self/status") as f:
         return next(int(line.split()[1]) * 1024 for line in f if line.startswith(field + ":"))
@@ -200,6 +214,8 @@ def run_case(scene: str, strands: int, args, head, grid, paths) -> list:
         case["k"] += 1
         if time.perf_counter() - t_case > args.case_cap and rep >= 1:
             break
+    if args.profile:
+        print(profile_table(case, "native", device, args.profile), flush=True)
     records = []
     for path in paths:
         ops, computing = ops_per_frame(case, path, device)
@@ -303,6 +319,8 @@ def main(argv=None) -> int:
     ap.add_argument("--memory-probe", nargs=3, metavar=("SCENE", "S", "PATH"), help=argparse.SUPPRESS)
     ap.add_argument("--system-malloc", action="store_true",
                     help="time with glibc's default malloc settings (default: keep freed memory, KEEP_FREED)")
+    ap.add_argument("--profile", type=int, default=0, metavar="FRAMES",
+                    help="also print the profiler's operators of this many native frames per case (self time)")
     ap.add_argument("--note", default="")
     ap.add_argument("--render", metavar="JSON", help="only rewrite the markdown of an earlier run's JSON")
     ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks" / "frame"))

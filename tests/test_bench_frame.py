@@ -5,7 +5,7 @@ import json
 from conftest import built_native, load_script
 
 
-def test_bench_frame_smoke(tmp_path):
+def test_bench_frame_smoke(tmp_path, capsys):
     """scripts/bench_frame.py, in-process and tiny: both paths timed, the JSON records carry the
     fields the issue names, the native path dispatches fewer ops than the torch path, and the
     markdown table and ratio are written."""
@@ -13,7 +13,8 @@ def test_bench_frame_smoke(tmp_path):
     bench = load_script("bench_frame")
     out = tmp_path / "frame"
     assert bench.main(["--scenes", "dynamics", "--strands", "64", "--reps", "2", "--no-memory", "--threads", "1",
-                       "--out", str(out)]) == 0
+                       "--profile", "2", "--out", str(out)]) == 0
+    assert "ams_torch_frame_cpu::frame_finish" in capsys.readouterr().out  # the profile names the fused kernel
     records = json.loads((tmp_path / "frame.json").read_text())["records"]
     keys = {"scene", "S", "N", "device", "path", "stage", "median_ms", "min_ms", "ops_per_frame",
             "peak_bytes_per_particle"}

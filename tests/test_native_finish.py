@@ -14,16 +14,9 @@ from ams_torch.sim.op_support import pose_tensors
 from ams_torch.sim.state import Control
 from ams_torch.sim.step import SimulationDiverged, check_state, step
 from ams_torch.stages.collide import SphereCollider
-from conftest import built_native
+from test_native_frame import DEVICES, F32, F64, _native_ns, frame_args, make_scene, native_cpu, rel  # noqa: F401
 
-DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
-F64, F32 = torch.float64, torch.float32
 EPS64 = torch.finfo(F64).eps
-
-
-@pytest.fixture(scope="module")
-def native_cpu():
-    return built_native("frame_cpu")
 
 
 def _case(device="cpu", dtype=F64, batch=(), pose_batch=None, strands=6, particles=7, seed=0):
@@ -48,6 +41,7 @@ def _case(device="cpu", dtype=F64, batch=(), pose_batch=None, strands=6, particl
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("batch,pose_batch", [((), None), ((3,), None), ((3,), ()), ((2, 2), None)])
 def test_native_equals_definition_float64(native_cpu, device, batch, pose_batch):
+    _native_ns(device)  # the kernels of this device are built (else the op would take the definition)
     model, x, v, pose = _case(device, F64, batch, pose_batch)
     want_v, want_s = finish.pin_and_speed(x, v, model.pinned, pose)
     got_v, got_s = finish.native_finish(model, x, v, pose)
@@ -67,6 +61,7 @@ def test_native_equals_definition_float64(native_cpu, device, batch, pose_batch)
 def test_native_equals_definition_float32(native_cpu, device):
     """float32: the head's rigid velocity is a few products and sums of O(1) terms, so each
     component is within a few ulps of the norm of the terms (bound 8 eps · scale)."""
+    _native_ns(device)
     model, x, v, pose = _case(device, F32, (2,))
     want_v, want_s = finish.pin_and_speed(x, v, model.pinned, pose)
     got_v, got_s = finish.native_finish(model, x, v, pose)
@@ -162,7 +157,6 @@ def test_frame_with_its_end_fused(native_cpu, scenes, dtype):
     to rounding, float32 within its conditioning (the frame's own float32 bound)."""
     from ams_torch.sim import native
     from ams_torch.sim.dynamics import frame_dynamics
-    from test_native_frame import frame_args, make_scene, rel
 
     sim, state, pose1 = make_scene(dtype=dtype, scenes=scenes, substeps=2, num_pinned=3)
     args = frame_args(sim, state, pose1)
