@@ -37,13 +37,17 @@ sequence, start       int                       the sequence index and the windo
 ====================  ========================  ==================================================
 
 A method is named by a built-in name (:data:`BUILTINS`, filled by :mod:`baselines.methods`), by
-``package.module:factory`` (a callable returning an Interpolator, called with the keyword
-options the benchmark gives, e.g. ``device``, that its signature accepts), or by the name of an
-entry point in the group ``ams_torch.interpolators`` of an installed package.
+``package.module:factory`` (a callable returning an Interpolator), or by the name of an entry
+point in the group ``ams_torch.interpolators`` of an installed package. The factory is called
+with the keywords of the benchmark's context that its signature takes (``device``: a
+``torch.device``; ``checkpoint``: a file path where a learned method caches its trained
+model, keyed by dataset, method and G: when that file exists the method loads it and is ready
+to predict without ``fit``; ``fit`` retrains only when it is absent) and with the user's options (``--option NAME.KEY=VALUE``).
 """
 from __future__ import annotations
 
 import importlib
+import re
 import inspect
 from abc import ABC, abstractmethod
 from typing import Callable, Dict, Optional
@@ -51,7 +55,7 @@ from typing import Callable, Dict, Optional
 import torch
 
 __all__ = ["Interpolator", "BUILTINS", "ENTRY_POINT_GROUP", "register", "resolve_method", "stream",
-           "check_prediction", "SAMPLE_KEYS", "MethodError"]
+           "check_prediction", "SAMPLE_KEYS", "MethodError", "safe_name", "frame_of", "describe"]
 
 ENTRY_POINT_GROUP = "ams_torch.interpolators"
 #: the keys every sample holds (see the module docstring)
@@ -101,14 +105,18 @@ def register(name: str):
     return deco
 
 
-def _call_factory(factory: Callable, where: str, options: dict) -> Interpolator:
+def _call_factory(factory: Callable, where: str, context: dict, options: dict) -> Interpolator:
     try:
         sig = inspect.signature(factory)
         takes_all = any(p.kind == p.VAR_KEYWORD for p in sig.parameters.values())
-        kwargs = options if takes_all else {k: v for k, v in options.items() if k in sig.parameters}
+        names = set(sig.parameters)
     except (TypeError, ValueError):  # a builtin or C callable: no signature to read
-        kwargs = {}
-    method = factory(**kwargs)
+        takes_all, names = False, set()
+    kwargs = {k: v for k, v in context.items() if takes_all or k in names}
+    unknown = [k for k in options if not takes_all and k not in names]
+    if unknown:
+        raise MethodError(f"method {where}: its factory takes no option(s) {unknown} (it takes {sorted(names)})")
+    method = factory(**kwargs, **options)
     if not isinstance(method, Interpolator) and not (callable(getattr(method, "predict", None))
                                                      and callable(getattr(method, "fit", None))):
         raise MethodError(f"method {where}: the factory returned {type(method).__name__}, which has no fit/predict "
@@ -121,15 +129,18 @@ def _call_factory(factory: Callable, where: str, options: dict) -> Interpolator:
     return method
 
 
-def resolve_method(spec: str, **options) -> Interpolator:
+def resolve_method(spec: str, context: Optional[dict] = None, **options) -> Interpolator:
     """The Interpolator named ``spec``: a built-in name, ``package.module:factory``, or an entry
-    point of the group ``ams_torch.interpolators``. ``options`` (e.g. ``device``) are passed to
-    the factory when its signature accepts them. Raises :class:`MethodError` naming the problem."""
+    point of the group ``ams_torch.interpolators``. ``context`` (what the benchmark offers every
+    method, e.g. ``device``, ``checkpoint``) is passed to the factory for the keywords its
+    signature takes; ``options`` (the user's, e.g. ``steps``) must all be taken. Raises
+    :class:`MethodError` naming the problem."""
+    context = context or {}
     from baselines import methods  # noqa: F401  (fills BUILTINS)
 
     spec = spec.strip()
     if spec in BUILTINS:
-        return _call_factory(BUILTINS[spec], spec, options)
+        return _call_factory(BUILTINS[spec], spec, context, options)
     if ":" in spec:
         module, _, attr = spec.partition(":")
         try:
@@ -143,12 +154,12 @@ def resolve_method(spec: str, **options) -> Interpolator:
                 raise MethodError(f"method {spec!r}: module {module!r} has no attribute {attr!r}")
         if not callable(factory):
             raise MethodError(f"method {spec!r}: {attr!r} is not callable")
-        return _call_factory(factory, spec, options)
+        return _call_factory(factory, spec, context, options)
     from importlib.metadata import entry_points
 
     for ep in entry_points(group=ENTRY_POINT_GROUP):
         if ep.name == spec:
-            return _call_factory(ep.load(), spec, options)
+            return _call_factory(ep.load(), spec, context, options)
     known = sorted(BUILTINS) + sorted(ep.name for ep in entry_points(group=ENTRY_POINT_GROUP))
     raise MethodError(f"unknown method {spec!r}: give a built-in name ({', '.join(known)}), "
                       f"'package.module:factory', or an entry point of the group {ENTRY_POINT_GROUP!r}")
@@ -171,6 +182,11 @@ def check_prediction(name: str, out, sample: dict) -> torch.Tensor:
     if not bool(torch.isfinite(out).all()):
         raise MethodError(f"method {name!r} returned NaN/Inf positions")
     return out
+
+
+def safe_name(spec: str) -> str:
+    """A method spec as a file name (``pkg.mod:factory`` → ``pkg.mod_factory``)."""
+    return re.sub(r"[^A-Za-z0-9_.+-]+", "_", spec)
 
 
 def frame_of(sample: dict, k: int) -> dict:

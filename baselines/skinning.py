@@ -111,14 +111,20 @@ class LinearHairSkinning(torch.nn.Module):
             root = min_rotation(t0.expand_as(cur), cur)
         return guide_frames(guides, root, t0)
 
-    def forward(self, guides: torch.Tensor, root_rotation: Optional[torch.Tensor] = None) -> torch.Tensor:
-        """guides (..., G, N, 3) metres [, root_rotation (..., 3, 3)] → dense (..., S, N, 3) metres."""
+    def forward(self, guides: torch.Tensor, root_rotation: Optional[torch.Tensor] = None,
+                chunk: int = 8192) -> torch.Tensor:
+        """guides (..., G, N, 3) metres [, root_rotation (..., 3, 3)] → dense (..., S, N, 3) metres.
+        Dense strands are done ``chunk`` at a time (the gathered frames take 36 K N bytes per strand
+        and frame in float32), so 100k strands fit in memory."""
         f = self.frames(guides, root_rotation)  # (..., G, N, 3, 3)
-        idx = self.guide_index
-        g = guides[..., idx, :, :]  # (..., S, K, N, 3)
-        fr = f[..., idx, :, :, :]  # (..., S, K, N, 3, 3)
-        moved = g + (fr @ self.local_offsets.to(guides)[..., None])[..., 0]
-        return (self.weights.to(guides)[..., None, None] * moved).sum(-3)
+        out = []
+        for lo in range(0, self.guide_index.shape[0], chunk):
+            idx = self.guide_index[lo:lo + chunk]
+            g = guides[..., idx, :, :]  # (..., s, K, N, 3)
+            fr = f[..., idx, :, :, :]  # (..., s, K, N, 3, 3)
+            moved = g + (fr @ self.local_offsets[lo:lo + chunk].to(guides)[..., None])[..., 0]
+            out.append((self.weights[lo:lo + chunk].to(guides)[..., None, None] * moved).sum(-3))
+        return torch.cat(out, -3)
 
     def gathered(self, guides_k: torch.Tensor, strands: torch.Tensor,
                  root_rotation: Optional[torch.Tensor] = None) -> torch.Tensor:

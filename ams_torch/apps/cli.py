@@ -18,6 +18,10 @@
     ams-torch export SEQUENCE.h5 --usd OUT.usd[a|c] [--every k] [--width m]
         → animated USD (BasisCurves with time-sampled points, the head and colliders as meshes
           with time-sampled transforms; docs/assets.md), for Blender, Houdini, Omniverse, Unreal.
+    ams-torch bench-interp DATASET_OR_SUITE --methods M1,M2,pkg.mod:factory --guides 64,256 --out DIR
+                                  [--train] [--device cuda] [--guide-source alone|dense|both]
+        → DIR/results.json, DIR/leaderboard.md and plots: guide-to-dense interpolation methods scored
+          against the dense simulation (baselines/bench.py; a suite of datasets/bench/ is generated first).
     ams-torch info
 
 Expected failures (bad input, a bad file, a simulation that diverged, a busy output folder)
@@ -372,6 +376,38 @@ def _cmd_validate(args) -> int:
     return 1
 
 
+def _cmd_bench_interp(args) -> int:
+    from baselines import bench  # the benchmark ships beside ams_torch (package ``baselines``)
+
+    guides = _int_list("--guides", args.guides)
+    sizes = [] if args.cost_sizes.strip().lower() in ("", "none", "0") else _int_list("--cost-sizes", args.cost_sizes)
+    device = str(parse_device(args.device)) if args.device else "cpu"
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    results = bench.run(args.source, methods, guides, args.out, train=args.train, retrain=args.retrain,
+                        device=device, guide_source=args.guide_source,
+                        splits=[s for s in args.splits.split(",") if s] if args.splits else None,
+                        options=bench.parse_options(args.option or []), cost_sizes=sizes, cost_frames=args.cost_frames,
+                        progress=not args.quiet, command=["ams-torch"] + (args.argv or []))
+    scored = sum(1 for r in results["rows"] if not r["method"].startswith("("))
+    print(f"wrote {os.path.join(args.out, 'results.json')} ({scored} scored sequences) and "
+          f"{os.path.join(args.out, 'leaderboard.md')}")
+    return 0
+
+
+def _int_list(flag: str, text: str) -> list:
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise ValueError(f"{flag} must be comma-separated integers; got {text!r}") from None
+    if not values or any(v < 1 for v in values):
+        raise ValueError(f"{flag} must be comma-separated integers >= 1; got {text!r}")
+    return values
+
+
 def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="ams-torch", description="Dense hair simulation with the AMS model.")
     ap.add_argument("--debug", action="store_true", help="show the traceback of a failure (default: one line)")
@@ -426,6 +462,28 @@ def _parser() -> argparse.ArgumentParser:
     ep.add_argument("--width", type=float, help="strand diameter, metres (default 70 µm)")
     ep.add_argument("--quiet", action="store_true", help="no progress bar")
     ep.set_defaults(fn=_cmd_export)
+    bp = sub.add_parser("bench-interp", help="score guide-to-dense interpolation methods against dense simulation")
+    bp.add_argument("source", help="a dataset (folder or file) of `generate`, or a suite of datasets/bench/ "
+                    "(mini, standard, full), generated into OUT/data first")
+    bp.add_argument("--methods", required=True, help="comma-separated: built-in names (rigid, nearest, skinning, "
+                    "skinning+pushout, upsampler, temporal, collision, agnostic), package.module:factory, or entry "
+                    "points of the group ams_torch.interpolators")
+    bp.add_argument("--guides", required=True, help="comma-separated guide counts, e.g. 64,256")
+    bp.add_argument("--out", required=True, help="output folder (results.json, leaderboard.md, plots, models/)")
+    bp.add_argument("--train", action="store_true", help="fit learned methods that have no trained model in OUT/models")
+    bp.add_argument("--retrain", action="store_true", help="fit learned methods even when OUT/models has them")
+    bp.add_argument("--device", help="cpu, cuda or cuda:N (default cpu)")
+    bp.add_argument("--guide-source", choices=("alone", "dense", "both"), default="alone",
+                    help="the guide input: simulated alone (default), the dense run's copies, or both")
+    bp.add_argument("--splits", help="comma-separated held-out splits to score (default: all but train and valid)")
+    bp.add_argument("--option", action="append", metavar="METHOD.KEY=VALUE",
+                    help="an option for a method's factory (repeatable), e.g. upsampler.steps=2000")
+    bp.add_argument("--cost-sizes", default="10000,100000", help="dense strand counts of the cost measurement "
+                    "(comma-separated; 'none' skips it)")
+    bp.add_argument("--cost-frames", type=int, default=3, help="frames timed per cost measurement")
+    bp.add_argument("--threads", type=int, help="torch CPU threads")
+    bp.add_argument("--quiet", action="store_true", help="no progress bars")
+    bp.set_defaults(fn=_cmd_bench_interp)
     ip = sub.add_parser("info", help="versions, devices, native solver status")
     ip.set_defaults(fn=_cmd_info)
     return ap
@@ -442,6 +500,7 @@ def main(argv=None) -> int:
     """Run the command line; returns the exit status (0 success, 1 problems found by validate,
     2 an expected failure, printed as one ``error:`` line unless ``--debug``, 130 interrupted)."""
     args = _parser().parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)
     try:
         return args.fn(args)
     except KeyboardInterrupt:
