@@ -103,7 +103,7 @@ def dataset_info(path: Path) -> dict:
     the recipe digest and every sequence's stored checksum), ``splits`` with their sequence
     counts, ``guides_alone`` (the guide counts simulated alone), ``guides_max`` (how many dense
     copies of guides are stored), ``recipe``."""
-    from ams_torch.apps.data import list_files, open_dataset
+    from ams_torch.apps.data.format import list_files, open_dataset
 
     h = hashlib.sha256()
     splits: Dict[str, int] = {}
@@ -225,7 +225,7 @@ def _open(path: Path, split, guides: int, source: str, window=None):
 
 
 def _collider_fields(path: Path) -> List[str]:
-    from ams_torch.apps.data import list_files, open_dataset
+    from ams_torch.apps.data.format import list_files, open_dataset
 
     with open_dataset(list_files(str(path))[0]) as f:
         g = f[next(k for k in f.keys() if k.startswith("seq_"))]

@@ -33,7 +33,7 @@ def guide_simulator(sim, index: torch.Tensor):
 
 
 def _scene(dataset: Path, strands: int) -> tuple:
-    from ams_torch.apps.data import list_files, open_dataset
+    from ams_torch.apps.data.format import list_files, open_dataset
 
     with open_dataset(list_files(str(dataset))[0]) as f:
         g = f[next(k for k in f.keys() if k.startswith("seq_"))]
