@@ -183,7 +183,8 @@ def provenance(device, command: Optional[List[str]] = None) -> dict:
            "command": command if command is not None else sys.argv}
     try:
         status = at.native_status()
-        out["native"] = {k: bool(v.get("built")) for k, v in status.items() if v.get("attempted")}
+        out["native"] = {k: ("built" if v.get("built") else v.get("reason")) for k, v in status.items()
+                         if isinstance(v, dict) and v.get("attempted")}
     except Exception as err:  # noqa: BLE001 - provenance must not stop a run
         out["native"] = f"unknown ({err})"
     return out

@@ -393,7 +393,7 @@ def _cmd_bench_interp(args) -> int:
                         options=bench.parse_options(args.option or []), cost_sizes=sizes, cost_frames=args.cost_frames,
                         progress=not args.quiet, command=["ams-torch"] + (args.argv or []))
     scored = sum(1 for r in results["rows"] if not r["method"].startswith("("))
-    print(f"wrote {os.path.join(args.out, 'results.json')} ({scored} scored sequences) and "
+    print(f"wrote {os.path.join(args.out, 'results.json')} ({scored} rows: method x guides x sequence) and "
           f"{os.path.join(args.out, 'leaderboard.md')}")
     return 0
 
