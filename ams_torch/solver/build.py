@@ -82,7 +82,7 @@ _BACKENDS = {
     "cuda": (
         "ams_torch_banded_cuda",
         ("banded/banded_cuda_binding.cpp", "banded/banded_cuda.cu"),
-        ("banded/banded_cholesky.h", "banded/banded_cuda.h"),
+        ("banded/banded_cholesky.h", "banded/banded_cuda.h", "cuda_common/launch_cuda.cuh"),
         "ams_torch_cuda",
         "cuda",
     ),
@@ -90,7 +90,7 @@ _BACKENDS = {
     "grid_cuda": (
         "ams_torch_grid_cuda",
         ("grid/grid_cuda_binding.cpp", "grid/grid_cuda.cu"),
-        ("grid/grid.h", "grid/grid_cuda.h"),
+        ("grid/grid.h", "grid/grid_cuda.h", "cuda_common/launch_cuda.cuh", "cuda_common/warp_atomic_cuda.cuh"),
         "ams_torch_grid_cuda",
         "cuda",
     ),
@@ -106,7 +106,7 @@ _BACKENDS = {
         "ams_torch_frame_cuda",
         ("frame/frame_cuda_binding.cpp", "frame/frame_cuda.cu"),
         ("banded/banded_cholesky.h", "frame/lanes.h", "frame/ftl.h", "frame/finish.h", "frame/frame.h",
-         "frame/frame_binding.h", "frame/frame_cuda.h", "frame/transpose_cuda.cuh"),
+         "frame/frame_binding.h", "frame/frame_cuda.h", "frame/transpose_cuda.cuh", "cuda_common/launch_cuda.cuh"),
         "ams_torch_frame_cuda",
         "cuda",
     ),
@@ -122,14 +122,25 @@ _BACKENDS = {
         "ams_torch_collide_cuda",
         ("collide/collide_cuda_binding.cpp", "collide/collide_cuda.cu"),
         ("banded/banded_cholesky.h", "frame/lanes.h", "frame/ftl.h", "frame/transpose_cuda.cuh", "collide/collide.h",
-         "collide/collide_binding.h", "collide/collide_cuda.h"),
+         "collide/collide_binding.h", "collide/collide_cuda.h", "cuda_common/launch_cuda.cuh"),
         "ams_torch_collide_cuda",
         "cuda",
     ),
 }
 
 
-_ALL = {**_BACKENDS, **emulation.emulated_specs(_BACKENDS)}
+# The emulator's self-test kernels (csrc/emulation/selftest_cuda.*): built on request only, for the
+# emulation (tests) and on a GPU (scripts/validate_cuda.py: the emulator's answers against the device's).
+_SELFTEST = {
+    "selftest_cuda": (
+        "ams_torch_selftest_cuda",
+        ("emulation/selftest_cuda_binding.cpp", "emulation/selftest_cuda.cu"),
+        ("emulation/selftest_cuda.h", "cuda_common/launch_cuda.cuh", "cuda_common/warp_atomic_cuda.cuh"),
+        "ams_torch_selftest_cuda",
+        "cuda",
+    ),
+}
+_ALL = {**_BACKENDS, **_SELFTEST, **emulation.emulated_specs({**_BACKENDS, **_SELFTEST})}
 
 
 class NativeBuildWarning(RuntimeWarning):

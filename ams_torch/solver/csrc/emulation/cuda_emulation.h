@@ -188,17 +188,19 @@ inline void release_group(Block& b, unsigned base, unsigned count, WarpOp op, un
   }
 }
 
-// Release warp groups that can go on. Before quiescence only the _sync groups whose every named
-// live lane has arrived; at quiescence (no fiber can run) also __activemask groups, and, as an
-// error, _sync groups still missing a lane. Returns whether any lane was released.
-inline bool release_warps(Block& b, bool quiescent) {
+// Release warp groups, in three phases. 0: _sync groups whose every named lane has arrived (a mask
+// naming a lane that exited or does not exist is an error, released at once). 1 (quiescence: no
+// fiber can run): __activemask groups, the lanes that reached it. 2 (deadlock): _sync groups
+// still missing a lane, as an error. Returns whether any lane was released.
+inline bool release_warps(Block& b, int phase) {
   bool released = false;
   const unsigned n = unsigned(b.fibers.size());
   for (unsigned base = 0; base < n; base += unsigned(kWarpSize)) {
     const unsigned count = std::min(unsigned(kWarpSize), n - base);
-    unsigned live = 0;
+    const unsigned exists = count == 32u ? 0xffffffffu : ((1u << count) - 1u);
+    unsigned done = 0;
     for (unsigned l = 0; l < count; ++l)
-      if (b.fibers[base + l].state != FiberState::kDone) live |= 1u << l;
+      if (b.fibers[base + l].state == FiberState::kDone) done |= 1u << l;
     for (unsigned l = 0; l < count; ++l) {
       const Fiber& f = b.fibers[base + l];
       if (f.state != FiberState::kAtWarp) continue;
@@ -210,18 +212,16 @@ inline bool release_warps(Block& b, bool quiescent) {
         if (g.state == FiberState::kAtWarp && g.op == op && g.mask == mask) arrived |= 1u << k;
       }
       if (op == WarpOp::kActiveMask) {
-        if (!quiescent) continue;
-      } else {
-        if (!(mask >> l & 1u)) {
-          b.fail(cudaErrorIllegalInstruction, "a warp collective's mask does not name the calling lane");
-        } else {
-          const unsigned need = mask & live & ((count == 32u) ? 0xffffffffu : ((1u << count) - 1u));
-          if ((arrived & need) != need) {
-            if (!quiescent) continue;
-            b.fail(cudaErrorIllegalInstruction,
-                   "a warp collective (_sync) waits for a lane of its mask that never reaches it");
-          }
-        }
+        if (phase != 1) continue;
+      } else if (!(mask >> l & 1u)) {
+        b.fail(cudaErrorIllegalInstruction, "a warp collective's mask does not name the calling lane");
+      } else if ((mask & ~exists) != 0u || (mask & done) != 0u) {
+        b.fail(cudaErrorIllegalInstruction,
+               "a warp collective's mask names a lane that has exited or does not exist (undefined behaviour)");
+      } else if ((arrived & mask) != mask) {
+        if (phase != 2) continue;
+        b.fail(cudaErrorIllegalInstruction,
+               "deadlock: a warp collective (_sync) waits for a lane of its mask that never reaches it");
       }
       release_group(b, base, count, op, mask, arrived);
       released = true;
@@ -269,7 +269,7 @@ inline void run_block(Block& b, int order, std::mt19937_64& rng) {
       t_fiber = &f;
       swapcontext(&b.scheduler, &f.ctx);
     }
-    if (release_warps(b, false) || release_warps(b, true)) continue;
+    if (release_warps(b, 0) || release_warps(b, 1)) continue;
     unsigned live = 0, waiting = 0;
     const void* site = nullptr;
     bool same_site = true;
@@ -283,9 +283,11 @@ inline void run_block(Block& b, int order, std::mt19937_64& rng) {
       }
     }
     if (live == 0) break;
-    if (waiting != live) {
-      b.fail(cudaErrorIllegalInstruction, "deadlock: threads wait in a warp collective and at __syncthreads()");
-    } else if (live != n) {
+    if (waiting != live) {  // some wait in a warp collective that cannot complete
+      release_warps(b, 2);
+      continue;
+    }
+    if (live != n) {
       b.fail(cudaErrorIllegalInstruction,
              "__syncthreads() reached by some threads of a block after others exited (undefined behaviour)");
     } else if (!same_site) {
@@ -293,7 +295,7 @@ inline void run_block(Block& b, int order, std::mt19937_64& rng) {
                                           "barrier: undefined behaviour)");
     }
     for (Fiber& f : b.fibers)  // release the barrier (after an error too, so that the block ends)
-      if (f.state == FiberState::kAtBarrier || f.state == FiberState::kAtWarp) f.state = FiberState::kRunnable;
+      if (f.state == FiberState::kAtBarrier) f.state = FiberState::kRunnable;
   }
   t_block = saved_block;
   t_fiber = saved_fiber;
