@@ -160,6 +160,11 @@ _state = {kind: _fresh_state() for kind in _ALL}
 _ops: dict = {}
 
 
+def _st(kind: str) -> dict:
+    """The state of ``kind`` (a fresh one when ``_state`` was reset to fewer kinds)."""
+    return _state.setdefault(kind, _fresh_state())
+
+
 def native_enabled() -> bool:
     """False when the environment variable ``AMS_TORCH_NATIVE`` is 0/false/no/off."""
     return os.environ.get(ENV_ENABLE, "1").strip().lower() not in ("0", "false", "no", "off")
@@ -191,7 +196,7 @@ def ensure(kind_list) -> dict:
     missing = {}
     for kind in kind_list:
         if native_ops(kind) is None:
-            missing[kind] = _state[kind]["reason"]
+            missing[kind] = _st(kind)["reason"]
     return missing
 
 
@@ -230,7 +235,7 @@ def native_status(build: bool = False) -> dict:
     with _lock:
         out = {"enabled": native_enabled(), "cache_dir": str(cache_root())}
         for kind in _ALL:
-            st = copy.deepcopy(_state[kind])
+            st = copy.deepcopy(_st(kind))
             if not st["attempted"]:
                 st["reason"] = _static_reason(kind) or "not built yet: built on first use"
             st["device"] = _ALL[kind][4]
@@ -247,7 +252,7 @@ def _get(kind: str) -> Optional[Callable]:
     if op is not None:
         return op
     with _lock:
-        st = _state[kind]
+        st = _st(kind)
         if not st["attempted"]:
             t0 = time.perf_counter()
             try:
@@ -271,12 +276,14 @@ class _Unavailable(Exception):
 
 
 def _warn_once(kind: str, reason: str) -> None:
+    """One warning per backend kind and process; when native code is disabled by the user, one in all."""
     global _warned
     if not _warned:
         _warned = set()
-    if kind in _warned:
+    key = "disabled" if not native_enabled() else kind
+    if key in _warned:
         return
-    _warned.add(kind)
+    _warned.add(key)
     warnings.warn(
         f"ams_torch: native kernels of backend {kind!r} unavailable ({reason}); its ops use the torch "
         "definition, which is much slower. ams_torch.native_status() has the details; set "
