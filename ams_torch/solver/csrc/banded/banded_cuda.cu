@@ -18,7 +18,13 @@ namespace {
 constexpr int kTile = 32;          // transpose tile edge
 constexpr int kTileRows = 8;       // rows of threads per transpose block
 constexpr int kSolveThreads = 128; // threads (strands) per solve block
-constexpr int kSolveMinBlocks = 4; // resident blocks per SM asked of the register allocator (<= 128 registers)
+// resident blocks per SM asked of the register allocator: 4 (<= 128 registers), 3 on sm_120+ (<= 170),
+// whose allocator spills the double solve at 128 (ptxas: 224 bytes; tests/test_ptxas_budget.py)
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 1200
+constexpr int kSolveMinBlocks = 3;
+#else
+constexpr int kSolveMinBlocks = 4;
+#endif
 
 // out[c, r] = in[r, c] for row-major `in` of shape (rows, cols). Grid-stride over 32×32 tiles.
 template <class T>
@@ -51,8 +57,7 @@ void launch_transpose(const T* in, T* out, int64_t rows, int64_t cols, cudaStrea
 // a: strand-interleaved matrix rows (n × 36 values per strand), factored in place;
 // b: strand-interleaved right-hand sides (n × 3), overwritten by the solution.
 template <class T>
-__global__ void __launch_bounds__(kSolveThreads, kSolveMinBlocks) solve_kernel(T* __restrict__ a, T* __restrict__ b,
-                                                                                int64_t strands, int64_t n) {
+__global__ void __launch_bounds__(kSolveThreads, kSolveMinBlocks) solve_kernel(T* a, T* b, int64_t strands, int64_t n) {
   const int64_t s = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (s >= strands) return;
   const Lanes<T, T> la{a + s, strands};

@@ -142,7 +142,7 @@ __global__ void __launch_bounds__(kFrameThreads) frame_kernel(const FrameArgs<T>
   st.ghost_velocity = per_scene(ws.ghost_velocity);
   const Material<T> mat{{args.gravity[0], args.gravity[1], args.gravity[2]}, *args.transition, *args.breaking,
                         *args.soft_ratio};
-  const T* __restrict__ poses = ws.poses + b * (cfg.substeps + 1) * kPoseElems; // read-only here
+  const T* poses = ws.poses + b * (cfg.substeps + 1) * kPoseElems;
   if (assemble_substep >= 0) {
     const T* pa = poses + assemble_substep * kPoseElems;
     assemble(st, mat, cfg, pa, pa + kPoseElems);
