@@ -59,7 +59,7 @@ from ams_torch.stages.collide import (
     SphereCollider,
 )
 
-__all__ = ["NATIVE_DTYPES", "needed_backends", "resolve_backend", "native_frame_available", "native_frame_supported", "native_frame_dynamics",
+__all__ = ["NATIVE_DTYPES", "native_frame_available", "native_frame_supported", "native_frame_dynamics",
            "native_frame_assembly", "frame_dynamics_op", "frame_assembly_op", "native_collisions_available",
            "native_collisions_supported", "native_collisions", "collisions_world", "collisions_op"]
 
@@ -76,48 +76,6 @@ POSE_FIELDS = ("rotation0", "translation0", "linear_velocity0", "rotation1", "tr
 
 
 # -- availability ---------------------------------------------------------------------------
-def needed_backends(device, hair_hair: bool = False, colliders: bool = False) -> Tuple[List[str], List[str]]:
-    """The native backends a simulator on ``device`` uses: (required by ``backend="native"``, used
-    when there: the banded solve of the torch path, which frames that keep a gradient take).
-    Kinds of :mod:`ams_torch.solver.build`: ``frame_<dev>``, ``collide_<dev>`` with colliders,
-    ``grid_<dev>`` with hair–hair interaction; ``cpu``/``cuda`` (the banded solve)."""
-    dev = torch.device(device).type
-    if dev not in _KINDS:
-        return [], []
-    required = [_KINDS[dev]] + ([_COLLIDE_KINDS[dev]] if colliders else []) + ([f"grid_{dev}"] if hair_hair else [])
-    return required, [dev]
-
-
-def resolve_backend(backend: str, device, dtype, hair_hair: bool = False, colliders: bool = False) -> str:
-    """The step backend of a simulator, deciding and building everything now (not in the first step).
-
-    Builds (or loads) every native backend the configuration uses (:func:`needed_backends`): a
-    backend that cannot be had warns once (``NativeBuildWarning``, naming it and why) and its ops
-    take the torch definition. ``"native"``: raises ``ValueError`` naming each required backend that
-    is unavailable and why (or the dtype/device that has no native kernels). ``"auto"``: "native"
-    when the frame backend is there, else "torch". ``"torch"``: "torch" (the banded solve is still
-    built: the torch path uses it). Returns "native" or "torch".
-    """
-    dev = torch.device(device).type
-    required, optional = needed_backends(device, hair_hair, colliders)
-    if backend == "torch":
-        _native.ensure(optional)
-        return "torch"
-    if not required or dtype not in NATIVE_DTYPES:
-        if backend == "native":
-            raise ValueError(f"backend='native' but there are no native kernels for {dev}/{dtype}: they take "
-                             f"float32 or float64 tensors on CPU or CUDA")
-        return "torch"
-    missing = _native.ensure(required + optional)
-    lacking = {k: why for k, why in missing.items() if k in required}
-    if backend == "native" and lacking:
-        detail = "; ".join(f"{k}: {why}" for k, why in lacking.items())
-        raise ValueError(f"backend='native' but {len(lacking)} native backend(s) it needs cannot be had: {detail} "
-                         f"(ams_torch.native_status() has the details; backend='auto' runs the torch definition "
-                         f"for them)")
-    return "torch" if _KINDS[dev] in missing else "native"
-
-
 def native_frame_available(device, dtype) -> bool:
     """Whether the native frame kernel runs for tensors of ``device`` and ``dtype`` (builds it on
     first call; False when it cannot be built, when ``AMS_TORCH_NATIVE=0``, or for dtypes other

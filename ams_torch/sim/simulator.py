@@ -9,7 +9,7 @@ import torch
 from ams_torch.geometry.pose import Pose
 from ams_torch.sim import step as step_mod
 from ams_torch.sim.model import Model, coefficients, sag_free_offset, warn_if_no_sag_offset
-from ams_torch.sim.native import resolve_backend
+from ams_torch.sim.backends import resolve_backend
 from ams_torch.sim.params import ANGULAR_FIELD, INTEGRITY_FIELD, Params
 from ams_torch.sim.state import Config, Control, ExternalForce, State
 from ams_torch.stages.collide import Collider, MeshCollider
@@ -105,7 +105,7 @@ class Simulator(torch.nn.Module):
         torch; "native": the same, but an error naming each backend it needs that cannot be had;
         "torch": the definition. Every native backend the configuration uses (frame, collisions,
         hair–hair grid, banded solve) is built here, once, not inside a step; one warning per
-        backend that cannot be (:func:`ams_torch.sim.native.resolve_backend`)."""
+        backend that cannot be (:func:`ams_torch.sim.backends.resolve_backend`)."""
         return resolve_backend(backend, device, dtype, hair_hair, colliders)
 
     @staticmethod
