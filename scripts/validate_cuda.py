@@ -32,6 +32,7 @@ CUDA ones, the eager stand-in for the graph capture); make test runs it (tests/t
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import platform
@@ -175,14 +176,23 @@ def step_tests(ctx: dict) -> dict:
     return {"status": "pass" if proc.returncode == 0 else "fail", "detail": tail[0], "returncode": proc.returncode}
 
 
-def _every_stage(device, dtype, strands: int, s: dict, particles: int = 32):
+@functools.lru_cache(maxsize=8)
+def _groom(subdivisions: int, sdf: int, strands: int, particles: int):
+    """(head SDF grid, rest shape) of a hanging groom: built once per process and size."""
     import ams_torch as at
     from ams_torch.geometry.sdf import SDFGrid
     from ams_torch.grooms.head import hanging_groom
 
-    head = at.default_head(s["head_subdivisions"])
-    grid = SDFGrid.from_mesh(head, resolution=s["sdf"])
-    rest = hanging_groom(head, strands, particles, 0.25, sdf=grid, seed=1)
+    head = at.default_head(subdivisions)
+    grid = SDFGrid.from_mesh(head, resolution=sdf)
+    return grid, hanging_groom(head, strands, particles, 0.25, sdf=grid, seed=1)
+
+
+def _every_stage(device, dtype, strands: int, s: dict, particles: int = 32):
+    """A simulator of a hanging groom with every stage: head collisions, hair–hair."""
+    import ams_torch as at
+
+    grid, rest = _groom(s["head_subdivisions"], s["sdf"], strands, particles)
     return at.Simulator(rest, at.Params(), device=device, dtype=dtype, colliders=[at.MeshCollider(grid)],
                         hair_hair=at.HairHair(resolution=s["grid"]))
 
