@@ -458,7 +458,8 @@ inline T from_bits(uint64_t bits) {
 #define blockIdx (::ams_emu::detail::t_block->block_idx)
 #define blockDim (::ams_emu::detail::t_block->block_dim)
 #define gridDim (::ams_emu::detail::t_block->grid_dim)
-#define warpSize 32
+
+inline constexpr int warpSize = 32;  // a constant, not a macro: host code's prop.warpSize keeps working
 
 inline void __syncthreads() { ams_emu::syncthreads(); }
 inline void __threadfence() { std::atomic_thread_fence(std::memory_order_seq_cst); }
