@@ -114,7 +114,8 @@ def step_preflight(ctx: dict) -> dict:
             problems.append("nvcc not found (set CUDA_HOME)")
         elif torch.version.cuda and info.get("nvcc_release") and \
                 info["nvcc_release"].split(".")[0] != torch.version.cuda.split(".")[0]:
-            problems.append(f"nvcc {info['nvcc_release']} and torch's CUDA {torch.version.cuda} differ in major version")
+            problems.append(f"nvcc {info['nvcc_release']} and torch's CUDA {torch.version.cuda} differ in major "
+                            "version")
     info["status"] = "fail" if problems else "pass"
     info["detail"] = "; ".join(problems) or ("dry run on the CPU" if ctx["dry"] else f"{info.get('device')}")
     return info
@@ -317,9 +318,10 @@ def step_sizes(ctx: dict) -> dict:
             got, want = states[device].x.cpu()[..., pick, :, :], states["cpu"].x[..., pick, :, :]
             out[str(dtype).split(".")[-1]] = {"max_dx_m": float((got - want).abs().max()), "rel": _rel(got, want)}
         res[name] = {"strands": strands, "particles": n, "scenes": scenes, **out}
-    ok = res["banded_solve"]["residual"] <= 1e-4 and all(
-        r["float64"]["max_dx_m"] <= 1e-9 and r["float32"]["max_dx_m"] <= 1e-4 for k, r in res.items() if k != "banded_solve")
-    detail = (f"{res['banded_solve']['strands']:,}-strand solve residual {res['banded_solve']['residual']:.2g}; every stage "
+    ok = res["banded_solve"]["residual"] <= 1e-4 and all(r["float64"]["max_dx_m"] <= 1e-9 and r["float32"]["max_dx_m"]
+                                                         <= 1e-4 for k, r in res.items() if k != "banded_solve")
+    detail = (f"{res['banded_solve']['strands']:,}-strand solve residual {res['banded_solve']['residual']:.2g}; "
+              f"every stage "
               f"{res['every_stage']['float64']['max_dx_m']:.2g} / {res['every_stage']['float32']['max_dx_m']:.2g} m; "
               f"N={s['long_n']} {res['long_strands']['float64']['max_dx_m']:.2g} / "
               f"{res['long_strands']['float32']['max_dx_m']:.2g} m (f64 / f32)")
@@ -356,7 +358,8 @@ def step_graph(ctx: dict) -> dict:
         out[strands] = {"eager_ms": round(1e3 * times["eager"] / k, 3), "graph_ms": round(1e3 * times["graph"] / k, 3),
                         "max_dx_m": err, "captures": graphed.captures, "replays": graphed.replays}
     ok = all(r["max_dx_m"] <= 1e-5 and r["captures"] == 1 for r in out.values())
-    detail = "; ".join(f"{n:,} strands: eager {r['eager_ms']} ms, graph {r['graph_ms']} ms/frame" for n, r in out.items())
+    detail = "; ".join(f"{n:,} strands: eager {r['eager_ms']} ms, graph {r['graph_ms']} ms/frame"
+                       for n, r in out.items())
     return {"status": "pass" if ok else "fail", "results": out, "detail": detail}
 
 
@@ -395,7 +398,8 @@ def step_bench(ctx: dict) -> dict:
     cmd = [sys.executable, str(ROOT / "scripts" / "bench_frame.py"), "--device", ctx["device"], "--strands",
            *map(str, s["bench_strands"]), "--scenes", *s["bench_scenes"], "--no-memory", "--out", str(out),
            "--torch-max-strands", str(10_000 if not ctx["dry"] else 0)]
-    cmd += ["--reps", "2", "--case-cap", "5", "--resolution", "8"] if ctx["dry"] else ["--reps", "7", "--case-cap", "20"]
+    cmd += (["--reps", "2", "--case-cap", "5", "--resolution", "8"] if ctx["dry"]
+            else ["--reps", "7", "--case-cap", "20"])
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=ctx["timeout"],
                           env=dict(os.environ, PYTHONPATH=str(ROOT)))
     print(proc.stdout[-4000:], proc.stderr[-3000:])
@@ -555,8 +559,8 @@ def _child(name: str, out: Path, dry: bool, limit: float) -> dict:
                     "seconds": round(time.perf_counter() - t0, 1)}
     if result_file.exists():
         return json.loads(result_file.read_text())
-    return {"status": "fail", "detail": f"the step's process ended with status {rc} and no result "
-                                        f"(a crash? log: steps/{name}.log)", "seconds": round(time.perf_counter() - t0, 1)}
+    return {"status": "fail", "seconds": round(time.perf_counter() - t0, 1),
+            "detail": f"the step's process ended with status {rc} and no result (a crash? log: steps/{name}.log)"}
 
 
 if __name__ == "__main__":

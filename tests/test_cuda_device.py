@@ -24,7 +24,6 @@ from test_native_grid import _solve_args, squeeze_scene, tol as grid_tol
 import ams_torch
 from ams_torch.sim import native
 from ams_torch.sim.op_support import pose_tensors
-from ams_torch.solver import build as _native
 from ams_torch.stages.collide import SphereCollider, resolve_world_poses
 from ams_torch.stages.hair_hair.native import p2g_op
 from ams_torch.stages.hair_hair.transfer import p2g_torch

@@ -71,7 +71,8 @@ from ams_torch.solver.cache import (  # noqa: F401  (re-exported: the lock and t
 )
 from ams_torch.solver.cuda_arch import nvcc_arches, resolve_arch_list
 
-__all__ = ["native_status", "native_enabled", "native_ops", "ensure", "kinds", "cpu_op", "cuda_op", "NativeBuildWarning"]
+__all__ = ["native_status", "native_enabled", "native_ops", "ensure", "kinds", "cpu_op", "cuda_op",
+           "NativeBuildWarning"]
 
 CSRC_ROOT = Path(__file__).resolve().parent / "csrc"
 CSRC = CSRC_ROOT / "banded"
