@@ -9,7 +9,7 @@ import torch
 from ams_torch.geometry.pose import Pose
 from ams_torch.sim import step as step_mod
 from ams_torch.sim.model import Model, coefficients, sag_free_offset, warn_if_no_sag_offset
-from ams_torch.sim.native import native_frame_available
+from ams_torch.sim.backends import resolve_backend
 from ams_torch.sim.params import ANGULAR_FIELD, INTEGRITY_FIELD, Params
 from ams_torch.sim.state import Config, Control, ExternalForce, State
 from ams_torch.stages.collide import Collider, MeshCollider
@@ -40,9 +40,11 @@ class Simulator(torch.nn.Module):
         learnable: names of Params material fields (e.g. ``("integrity_stiffness", "drag")``)
             to make ``nn.Parameter`` s of the module, for ``torch.optim.Adam(sim.parameters())``.
         backend: "torch" (the differentiable definition), "native" (the fused kernels, see
-            :mod:`ams_torch.sim.native`; an error when they cannot be built) or "auto" (the default:
-            native when they can be built, torch otherwise). Either way, a frame whose inputs
-            require grad takes the torch definition, so gradients stay exact.
+            :mod:`ams_torch.sim.native`; an error naming the kernels that cannot be built) or "auto"
+            (the default: native when they can be built, torch otherwise, one warning per backend
+            that cannot). The kernels the configuration needs are built here, not in the first
+            step. Either way, a frame whose inputs require grad takes the torch definition, so
+            gradients stay exact.
 
     The fixed data is ``sim.model`` (a registered submodule: ``.to()``, ``.double()``,
     ``state_dict()`` work), the frozen settings ``sim.config``; ``sim.step`` builds a
@@ -84,7 +86,8 @@ class Simulator(torch.nn.Module):
         self.hair_hair = hair_hair
         self.requested_backend = backend
         self.config = self._make_config(params, tuple(learnable), hair_hair is not None, cols,
-                                        self._resolve_backend(backend, device, dtype))
+                                        self._resolve_backend(backend, device, dtype, hair_hair is not None,
+                                                              bool(cols)))
         init = (pose or Pose.identity(dtype=dtype)).to(device=device, dtype=dtype)
         if init.rotation.shape != (3, 3):
             raise ValueError(f"pose (the head pose at t = 0) must be a single pose; got rotation "
@@ -97,20 +100,13 @@ class Simulator(torch.nn.Module):
         self._frames = 0  # calls of step, to run the divergence guard every check_every frames
 
     @staticmethod
-    def _resolve_backend(backend: str, device, dtype) -> str:
-        """"auto": the fused native kernels when they can be built for this device and dtype (the
-        build happens here, once, not inside a step), else torch (one warning says why);
-        "native": the same, but an error when they cannot be had; "torch": the definition."""
-        if backend == "torch":
-            return "torch"
-        available = native_frame_available(device, dtype)
-        if backend == "native" and not available:
-            from ams_torch.solver.build import native_status
-
-            st = native_status().get("frame_" + torch.device(device).type, {})
-            raise ValueError(f"backend='native' but the native frame kernel is not available for {device}/{dtype}: "
-                             f"{st.get('reason') or 'float32/float64 on CPU or CUDA only'}")
-        return "native" if available else "torch"
+    def _resolve_backend(backend: str, device, dtype, hair_hair: bool = False, colliders: bool = False) -> str:
+        """"auto": the fused native kernels when they can be built for this device and dtype, else
+        torch; "native": the same, but an error naming each backend it needs that cannot be had;
+        "torch": the definition. Every native backend the configuration uses (frame, collisions,
+        hair–hair grid, banded solve) is built here, once, not inside a step; one warning per
+        backend that cannot be (:func:`ams_torch.sim.backends.resolve_backend`)."""
+        return resolve_backend(backend, device, dtype, hair_hair, colliders)
 
     @staticmethod
     def _make_config(params: Params, learnable: tuple, hair_hair: bool, cols: list, backend: str) -> Config:

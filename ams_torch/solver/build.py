@@ -1,29 +1,41 @@
-"""Lazy build and loading of the native banded-solver kernels (CPU and CUDA).
+"""Lazy build and loading of the native kernels (CPU and CUDA, and the CUDA emulation of the tests).
 
-Nothing is compiled at import time. The first solve on a device asks for that device's
-backend (:func:`cpu_op`, :func:`cuda_op`); it is compiled once with
-``torch.utils.cpp_extension.load`` into a cache directory, loaded, and reused by every later
-call and process. When a backend cannot be had (native code disabled, no C++ compiler, no
-ninja, no CUDA toolkit, a compile error) the caller gets ``None``, falls back to the plain
-torch solver, and one :class:`NativeBuildWarning` is issued per process.
+Nothing is compiled at import time. The first use of a backend (:func:`native_ops`, :func:`cpu_op`,
+:func:`cuda_op`; the simulator asks for every backend its configuration needs when it is
+constructed: :func:`ensure`) compiles it once with ``torch.utils.cpp_extension.load`` into a cache
+directory, loads it, runs its smoke test (:mod:`ams_torch.solver.probes`: one tiny call compared
+with the torch definition) and reuses it in every later call and process. When a backend cannot
+be had (native code disabled, no C++ compiler, no ninja, no CUDA toolkit, a compile error, a
+failed smoke test) the caller gets ``None`` and falls back to the torch definition, and one
+:class:`NativeBuildWarning` is issued per backend kind and process, naming the kind and why.
+
+Backends (``_BACKENDS``): one per op group and device (``cpu``/``cuda``: the banded solve;
+``frame_*``, ``collide_*``, ``grid_*``), so that a group that fails to build leaves the others;
+and for every CUDA backend ``<kind>_emu``, its sources built as host code (:mod:`ams_torch.solver.emulation`).
 
 Environment:
     AMS_TORCH_NATIVE=0           use the plain-torch solver only (never build).
     AMS_TORCH_CACHE=<dir>        cache root (default ``~/.cache/ams_torch``). Each build goes to
                                  ``<root>/<backend>-torch<ver>-cuda<ver>-<hash>``, the hash
                                  covering torch/CUDA/Python versions, compiler, CPU capability,
-                                 flags and the sources, so a changed source or machine rebuilds.
+                                 flags, architectures and the sources, so a changed source or machine rebuilds.
     AMS_TORCH_BUILD_LOCK_STALE_S seconds after which a build lock is considered abandoned
                                  (default 1200).
-    MAX_JOBS, TORCH_CUDA_ARCH_LIST are honoured when set; otherwise MAX_JOBS is capped at
-    min(cpu_count, 4) and the architecture list is taken from the visible GPUs.
+    MAX_JOBS is honoured when set (otherwise min(cpu_count, 4)). TORCH_CUDA_ARCH_LIST: see
+    :mod:`ams_torch.solver.cuda_arch` (unset: the visible devices' architectures, clamped to what
+    torch and nvcc support, the newest also as PTX; set: checked against ``nvcc --list-gpu-arch``
+    and completed with the devices' architectures).
+
+Cache integrity: ``build.json`` records the library's size and SHA-256; a library that does not
+match (truncated, emptied, replaced) is never loaded: it is deleted and rebuilt (relinked from the
+cached objects when those are intact).
 
 Concurrency: builders of one cache directory serialise on ``ams_build.lock`` in it (pid,
 host, time). A lock whose owner is a dead process on this host, or that is older than the
 stale limit, is removed, as is torch's own FileBaton ``lock`` file (which a killed build leaves
 behind and which would otherwise make every later build wait forever).
 
-:func:`native_status` reports which backends were built and why not.
+:func:`native_status` reports, for every backend kind, whether it is built, why not, and its flags.
 """
 from __future__ import annotations
 
@@ -34,7 +46,6 @@ import json
 import os
 import platform
 import shutil
-import socket
 import subprocess
 import sys
 import threading
@@ -45,17 +56,28 @@ from typing import Callable, Iterator, Optional
 
 import torch
 
-__all__ = ["native_status", "native_enabled", "cpu_op", "cuda_op", "NativeBuildWarning"]
+from ams_torch.solver import emulation, probes
+from ams_torch.solver.cache import (  # noqa: F401  (re-exported: the lock and the cache's file names)
+    DEFAULT_LOCK_STALE_S,
+    ENV_LOCK_STALE,
+    LOCK_NAME,
+    MARKER_NAME,
+    TORCH_LOCK_NAME,
+    build_lock,
+    cached_library as _cached_library,
+    discard_library as _discard_library,
+    lock_is_stale,
+    write_marker as _write_marker,
+)
+from ams_torch.solver.cuda_arch import nvcc_arches, resolve_arch_list
+
+__all__ = ["native_status", "native_enabled", "native_ops", "ensure", "kinds", "cpu_op", "cuda_op",
+           "NativeBuildWarning"]
 
 CSRC_ROOT = Path(__file__).resolve().parent / "csrc"
 CSRC = CSRC_ROOT / "banded"
 ENV_ENABLE = "AMS_TORCH_NATIVE"
 ENV_CACHE = "AMS_TORCH_CACHE"
-ENV_LOCK_STALE = "AMS_TORCH_BUILD_LOCK_STALE_S"
-DEFAULT_LOCK_STALE_S = 1200.0
-LOCK_NAME = "ams_build.lock"   # ours: JSON {"pid", "host", "time"}
-TORCH_LOCK_NAME = "lock"       # torch.utils.file_baton.FileBaton inside the build directory
-MARKER_NAME = "build.json"     # written after a successful build: its inputs and the library
 
 # backend -> (extension name, sources compiled, headers they include (paths relative to csrc/),
 #             torch.ops namespace, device type). Every csrc/ folder is on the include path.
@@ -67,7 +89,7 @@ _BACKENDS = {
     "cuda": (
         "ams_torch_banded_cuda",
         ("banded/banded_cuda_binding.cpp", "banded/banded_cuda.cu"),
-        ("banded/banded_cholesky.h", "banded/banded_cuda.h"),
+        ("banded/banded_cholesky.h", "banded/banded_cuda.h", "cuda_common/launch_cuda.cuh"),
         "ams_torch_cuda",
         "cuda",
     ),
@@ -75,7 +97,7 @@ _BACKENDS = {
     "grid_cuda": (
         "ams_torch_grid_cuda",
         ("grid/grid_cuda_binding.cpp", "grid/grid_cuda.cu"),
-        ("grid/grid.h", "grid/grid_cuda.h"),
+        ("grid/grid.h", "grid/grid_cuda.h", "cuda_common/launch_cuda.cuh", "cuda_common/warp_atomic_cuda.cuh"),
         "ams_torch_grid_cuda",
         "cuda",
     ),
@@ -91,7 +113,7 @@ _BACKENDS = {
         "ams_torch_frame_cuda",
         ("frame/frame_cuda_binding.cpp", "frame/frame_cuda.cu"),
         ("banded/banded_cholesky.h", "frame/lanes.h", "frame/ftl.h", "frame/finish.h", "frame/frame.h",
-         "frame/frame_binding.h", "frame/frame_cuda.h", "frame/transpose_cuda.cuh"),
+         "frame/frame_binding.h", "frame/frame_cuda.h", "frame/transpose_cuda.cuh", "cuda_common/launch_cuda.cuh"),
         "ams_torch_frame_cuda",
         "cuda",
     ),
@@ -107,28 +129,47 @@ _BACKENDS = {
         "ams_torch_collide_cuda",
         ("collide/collide_cuda_binding.cpp", "collide/collide_cuda.cu"),
         ("banded/banded_cholesky.h", "frame/lanes.h", "frame/ftl.h", "frame/transpose_cuda.cuh", "collide/collide.h",
-         "collide/collide_binding.h", "collide/collide_cuda.h"),
+         "collide/collide_binding.h", "collide/collide_cuda.h", "cuda_common/launch_cuda.cuh"),
         "ams_torch_collide_cuda",
         "cuda",
     ),
 }
 
 
+# The emulator's self-test kernels (csrc/emulation/selftest_cuda.*): built on request only, for the
+# emulation (tests) and on a GPU (scripts/validate_cuda.py: the emulator's answers against the device's).
+_SELFTEST = {
+    "selftest_cuda": (
+        "ams_torch_selftest_cuda",
+        ("emulation/selftest_cuda_binding.cpp", "emulation/selftest_cuda.cu"),
+        ("emulation/selftest_cuda.h", "cuda_common/launch_cuda.cuh", "cuda_common/warp_atomic_cuda.cuh"),
+        "ams_torch_selftest_cuda",
+        "cuda",
+    ),
+}
+_ALL = {**_BACKENDS, **_SELFTEST, **emulation.emulated_specs({**_BACKENDS, **_SELFTEST})}
+
+
 class NativeBuildWarning(RuntimeWarning):
-    """The native solver could not be built or loaded; the plain-torch solver is used."""
+    """A native backend could not be built or loaded; the torch definition is used for its ops."""
 
 
 _lock = threading.RLock()
-_warned = False
+_warned = set()  # backend kinds warned about in this process (anything falsy resets it)
 
 
 def _fresh_state() -> dict:
     return {"attempted": False, "built": False, "reason": None, "library": None, "build_dir": None,
-            "build_seconds": None, "flags": None}
+            "build_seconds": None, "flags": None, "notes": []}
 
 
-_state = {kind: _fresh_state() for kind in _BACKENDS}
+_state = {kind: _fresh_state() for kind in _ALL}
 _ops: dict = {}
+
+
+def _st(kind: str) -> dict:
+    """The state of ``kind`` (a fresh one when ``_state`` was reset to fewer kinds)."""
+    return _state.setdefault(kind, _fresh_state())
 
 
 def native_enabled() -> bool:
@@ -142,10 +183,28 @@ def cache_root() -> Path:
     return Path(env).expanduser() if env else Path.home() / ".cache" / "ams_torch"
 
 
+def kinds(device: Optional[str] = None) -> list:
+    """Every backend kind (the keys of the build table and their emulations), or those whose ops
+    take ``device`` tensors' device type ("cpu", "cuda", or "emulation")."""
+    return [k for k, spec in _ALL.items() if device is None or spec[4] == device]
+
+
 def native_ops(kind: str):
-    """The ``torch.ops`` namespace of backend ``kind`` (a key of ``_BACKENDS``), building and
-    loading its library on first call; None when it cannot be had (one warning per process)."""
+    """The ``torch.ops`` namespace of backend ``kind`` (see :func:`kinds`), building, loading and
+    smoke-testing its library on first call; None when it cannot be had (one warning per kind)."""
+    if kind not in _ALL:
+        raise ValueError(f"unknown native backend {kind!r}; one of {sorted(_ALL)}")
     return _get(kind)
+
+
+def ensure(kind_list) -> dict:
+    """Build (or load) every backend of ``kind_list`` now. Returns ``{kind: reason}`` for those that
+    are unavailable (empty when all are built)."""
+    missing = {}
+    for kind in kind_list:
+        if native_ops(kind) is None:
+            missing[kind] = _st(kind)["reason"]
+    return missing
 
 
 def cpu_op() -> Optional[Callable]:
@@ -164,13 +223,17 @@ def native_status(build: bool = False) -> dict:
     """Which native backends are built, and why not.
 
     Args:
-        build: first try to build every backend this process could use (CPU always; CUDA when
-            a GPU is visible), instead of only reporting what earlier solves did.
+        build: first try to build every backend this process could use (the CPU ones always; the
+            CUDA ones when a GPU is visible; never the emulated ones, which are for the tests),
+            instead of only reporting what was used so far.
     Returns:
-        ``{"enabled": bool, "cache_dir": str, "cpu": {...}, "cuda": {...}}``; each backend
-        dict has ``built`` (bool), ``reason`` (why not, or None), ``attempted`` (a build or
-        load was tried in this process), ``library`` (path of the loaded .so), ``build_dir``,
-        ``build_seconds`` (compile + load time, ~0 when cached) and ``flags``.
+        ``{"enabled": bool, "cache_dir": str, <kind>: {...} for every kind}``; each backend dict
+        has ``built`` (bool), ``reason`` (why not, or None), ``attempted`` (a build or load was
+        tried in this process), ``library`` (path of the loaded .so), ``build_dir``,
+        ``build_seconds`` (compile + load + smoke test, ~0 when cached), ``flags`` (compiler
+        flags; for CUDA the architectures in ``TORCH_CUDA_ARCH_LIST=...``), ``notes`` (what the
+        build changed, e.g. architectures added or left out) and ``device`` ("cpu", "cuda" or
+        "emulation").
     """
     if build:
         for kind, spec in _BACKENDS.items():
@@ -178,10 +241,11 @@ def native_status(build: bool = False) -> dict:
                 _get(kind)
     with _lock:
         out = {"enabled": native_enabled(), "cache_dir": str(cache_root())}
-        for kind in _BACKENDS:
-            st = copy.deepcopy(_state[kind])
+        for kind in _ALL:
+            st = copy.deepcopy(_st(kind))
             if not st["attempted"]:
                 st["reason"] = _static_reason(kind) or "not built yet: built on first use"
+            st["device"] = _ALL[kind][4]
             out[kind] = st
         return out
 
@@ -195,7 +259,7 @@ def _get(kind: str) -> Optional[Callable]:
     if op is not None:
         return op
     with _lock:
-        st = _state[kind]
+        st = _st(kind)
         if not st["attempted"]:
             t0 = time.perf_counter()
             try:
@@ -219,14 +283,18 @@ class _Unavailable(Exception):
 
 
 def _warn_once(kind: str, reason: str) -> None:
+    """One warning per backend kind and process; when native code is disabled by the user, one in all."""
     global _warned
-    if _warned:
+    if not _warned:
+        _warned = set()
+    key = "disabled" if not native_enabled() else kind
+    if key in _warned:
         return
-    _warned = True
+    _warned.add(key)
     warnings.warn(
-        f"ams_torch: native kernels ({kind}) unavailable ({reason}); using the plain-torch "
-        "path, which is much slower. ams_torch.native_status() has the details; set "
-        f"{ENV_ENABLE}=0 to choose the plain solver explicitly.",
+        f"ams_torch: native kernels of backend {kind!r} unavailable ({reason}); its ops use the torch "
+        "definition, which is much slower. ams_torch.native_status() has the details; set "
+        f"{ENV_ENABLE}=0 to choose the torch path explicitly.",
         NativeBuildWarning,
         stacklevel=4,
     )
@@ -236,7 +304,7 @@ def _static_reason(kind: str) -> Optional[str]:
     """Why ``kind`` cannot be built, from facts known without compiling, or None."""
     if not native_enabled():
         return f"disabled by {ENV_ENABLE}={os.environ.get(ENV_ENABLE)}"
-    if _BACKENDS[kind][4] == "cuda":
+    if _ALL[kind][4] == "cuda":
         if torch.version.cuda is None:
             return "this torch was built without CUDA"
         if not torch.cuda.is_available():
@@ -255,17 +323,21 @@ def _build_and_load(kind: str, st: dict) -> Callable:
     reason = _static_reason(kind)
     if reason:
         raise _Unavailable(reason)
-    name, sources, headers, namespace, device = _BACKENDS[kind]
+    name, sources, headers, namespace, device = _ALL[kind]
     cflags, cuda_flags, ldflags, key_parts = _build_config(device)
+    st["notes"] = list(key_parts.pop("notes", []))
     digest = hashlib.sha256()
     digest.update(json.dumps(key_parts, sort_keys=True).encode())
-    for fname in sources + headers:
-        digest.update(fname.encode())
-        digest.update((CSRC_ROOT / fname).read_bytes())
+    inputs = [CSRC_ROOT / f for f in sources + headers]
+    if device == emulation.DEVICE:
+        inputs += emulation.shim_files()
+    for path in inputs:
+        digest.update(str(path.relative_to(CSRC_ROOT)).encode())
+        digest.update(path.read_bytes())
     tag = f"{kind}-torch{torch.__version__}-cuda{torch.version.cuda or 'none'}-{digest.hexdigest()[:16]}"
     build_dir = cache_root() / tag.replace("+", "_")
     st["build_dir"] = str(build_dir)
-    st["flags"] = cflags + cuda_flags
+    st["flags"] = cflags + cuda_flags + ([f"TORCH_CUDA_ARCH_LIST={key_parts['arch']}"] if "arch" in key_parts else [])
     build_dir.mkdir(parents=True, exist_ok=True)
 
     library = _cached_library(build_dir)
@@ -277,40 +349,52 @@ def _build_and_load(kind: str, st: dict) -> Callable:
 
                 if not cpp_extension.is_ninja_available():
                     raise _Unavailable("ninja is not installed (pip install ninja)")
-                with _build_env(device):
+                _discard_library(build_dir, name)
+                if device == emulation.DEVICE:
+                    paths, includes = emulation.prepare(sources, headers, build_dir / "src")
+                else:
+                    paths = [str(CSRC_ROOT / s) for s in sources]
+                    includes = [str(d) for d in sorted(CSRC_ROOT.iterdir()) if d.is_dir() and d.name != "emulation"]
+                with _build_env(device, key_parts.get("arch")):
                     path = cpp_extension.load(
                         name=name,
-                        sources=[str(CSRC_ROOT / s) for s in sources],
+                        sources=paths,
                         extra_cflags=cflags,
                         extra_cuda_cflags=cuda_flags,
                         extra_ldflags=ldflags,
-                        extra_include_paths=[str(d) for d in sorted(CSRC_ROOT.iterdir()) if d.is_dir()],
+                        extra_include_paths=includes,
                         build_directory=str(build_dir),
                         is_python_module=False,
                         verbose=False,
                     )
                 library = Path(path)
-                (build_dir / MARKER_NAME).write_text(json.dumps({"library": library.name, "key": key_parts}))
+                _write_marker(build_dir, library, key_parts)
     torch.ops.load_library(str(library))
     st["library"] = str(library)
-    return getattr(torch.ops, namespace)
+    ns = getattr(torch.ops, namespace)
+    _smoke_test(kind, ns, device, st)
+    return ns
 
 
-def _cached_library(build_dir: Path) -> Optional[Path]:
-    marker = build_dir / MARKER_NAME
+def _smoke_test(kind: str, ns, device: str, st: dict) -> None:
+    """Run the backend's probe (:mod:`ams_torch.solver.probes`); a failure makes it unavailable."""
+    if device == "cuda" and torch.cuda.is_current_stream_capturing():
+        st["notes"].append("smoke test skipped: first used inside a CUDA graph capture")
+        return
     try:
-        library = build_dir / json.loads(marker.read_text())["library"]
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
-    return library if library.exists() else None
+        probes.probe(kind, ns, "cuda" if device == "cuda" else "cpu")
+    except Exception as e:  # noqa: BLE001 - any failure of the probe means the backend is unusable
+        raise _Unavailable(f"built and loaded, but its smoke test failed: {type(e).__name__}: {_tail(str(e), 4)}")
 
 
-def _build_config(kind: str):
-    """(C++ flags, nvcc flags, linker flags, cache-key facts) for ``kind``."""
+def _build_config(device: str):
+    """(C++ flags, nvcc flags, linker flags, cache-key facts) for a backend of ``device``."""
     cflags = ["-O3", "-fno-math-errno", "-Wno-psabi"]
     ldflags: list = []
     capability = torch.backends.cpu.get_cpu_capability()
-    if kind == "cpu":
+    if device == emulation.DEVICE:
+        cflags = emulation.compile_flags()
+    if device == "cpu":
         # at::parallel_for is inline OpenMP code when torch uses the OpenMP backend: without
         # -fopenmp it would run serially. The soname libgomp.so.1 resolves to torch's copy.
         if "OpenMP" in torch.__config__.parallel_info() and sys.platform.startswith("linux"):
@@ -331,12 +415,18 @@ def _build_config(kind: str):
         "cflags": cflags,
         "ldflags": ldflags,
     }
-    if kind == "cuda":
+    if device == emulation.DEVICE:
+        key["emulation"] = emulation.REWRITE_VERSION
+    if device == "cuda":
         cuda_flags = ["-O3"]  # torch adds the C++ standard and the -gencode list
         from torch.utils import cpp_extension
 
-        key["nvcc"] = _tool_version([str(Path(cpp_extension.CUDA_HOME, "bin", "nvcc")), "--version"])
-        key["arch"] = _cuda_arch_list()
+        nvcc = str(Path(cpp_extension.CUDA_HOME, "bin", "nvcc"))
+        key["nvcc"] = _tool_version([nvcc, "--version"])
+        try:
+            key["arch"], key["notes"] = _cuda_arch_list(nvcc)
+        except ValueError as e:
+            raise _Unavailable(str(e))
         key["cuda_flags"] = cuda_flags
     return cflags, cuda_flags, ldflags, key
 
@@ -350,22 +440,21 @@ def _tool_version(cmd: list) -> str:
     return (lines[0] + " | " + lines[-1]) if lines else "unknown"
 
 
-def _cuda_arch_list() -> str:
-    env = os.environ.get("TORCH_CUDA_ARCH_LIST")
-    if env:
-        return env
-    caps = sorted({torch.cuda.get_device_capability(i) for i in range(torch.cuda.device_count())})
-    return ";".join(f"{major}.{minor}" for major, minor in caps)
+def _cuda_arch_list(nvcc: str) -> tuple:
+    """(TORCH_CUDA_ARCH_LIST to build with, notes): :func:`ams_torch.solver.cuda_arch.resolve_arch_list`."""
+    caps = [torch.cuda.get_device_capability(i) for i in range(torch.cuda.device_count())]
+    return resolve_arch_list(os.environ.get("TORCH_CUDA_ARCH_LIST"), caps, torch.cuda.get_arch_list(),
+                             nvcc_arches(nvcc))
 
 
 @contextlib.contextmanager
-def _build_env(kind: str) -> Iterator[None]:
+def _build_env(device: str, arch: Optional[str]) -> Iterator[None]:
     saved = {k: os.environ.get(k) for k in ("MAX_JOBS", "TORCH_CUDA_ARCH_LIST")}
     try:
         if not saved["MAX_JOBS"]:
             os.environ["MAX_JOBS"] = str(max(1, min(os.cpu_count() or 1, 4)))
-        if kind == "cuda" and not saved["TORCH_CUDA_ARCH_LIST"]:
-            os.environ["TORCH_CUDA_ARCH_LIST"] = _cuda_arch_list()
+        if device == "cuda" and arch:
+            os.environ["TORCH_CUDA_ARCH_LIST"] = arch
         yield
     finally:
         for k, v in saved.items():
@@ -377,76 +466,3 @@ def _build_env(kind: str) -> Iterator[None]:
 
 def _tail(text: str, lines: int = 12) -> str:
     return "\n".join(text.strip().splitlines()[-lines:])
-
-
-# ---------------------------------------------------------------------------------------
-# build lock
-# ---------------------------------------------------------------------------------------
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    except OSError:
-        return False
-    try:  # a zombie (killed, not yet reaped) is dead for our purpose
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
-    except (OSError, IndexError):
-        return True
-
-
-def lock_is_stale(path: Path, stale_after_s: float) -> bool:
-    """True when the build lock ``path`` is abandoned: its owner is a dead process on this host,
-    or it is older than ``stale_after_s`` seconds, or it is unreadable and older than 5 s."""
-    try:
-        age = time.time() - path.stat().st_mtime
-    except FileNotFoundError:
-        return False
-    if age > stale_after_s:
-        return True
-    try:
-        owner = json.loads(path.read_text())
-        pid, host = int(owner["pid"]), str(owner["host"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return age > 5.0  # being written right now, or garbage
-    return host == socket.gethostname() and not _pid_alive(pid)
-
-
-@contextlib.contextmanager
-def build_lock(build_dir: Path, stale_after_s: Optional[float] = None, poll_s: float = 0.2) -> Iterator[None]:
-    """Hold the build lock of ``build_dir`` (waits for a live holder; breaks a stale one).
-
-    While held, any torch FileBaton ``lock`` in ``build_dir`` is a leftover of a killed build
-    (every builder of this directory takes this lock first) and is removed, so that
-    ``cpp_extension.load`` does not wait on it forever. Waiting is bounded: a lock older than
-    ``stale_after_s`` (default ``$AMS_TORCH_BUILD_LOCK_STALE_S`` or 1200 s) is broken.
-    """
-    if stale_after_s is None:
-        stale_after_s = float(os.environ.get(ENV_LOCK_STALE, DEFAULT_LOCK_STALE_S))
-    build_dir = Path(build_dir)
-    build_dir.mkdir(parents=True, exist_ok=True)
-    path = build_dir / LOCK_NAME
-    while True:
-        try:
-            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-        except FileExistsError:
-            if lock_is_stale(path, stale_after_s):
-                with contextlib.suppress(FileNotFoundError):
-                    path.unlink()
-            else:
-                time.sleep(poll_s)
-            continue
-        with os.fdopen(fd, "w") as f:
-            json.dump({"pid": os.getpid(), "host": socket.gethostname(), "time": time.time()}, f)
-        break
-    try:
-        with contextlib.suppress(FileNotFoundError):
-            (build_dir / TORCH_LOCK_NAME).unlink()
-        yield
-    finally:
-        with contextlib.suppress(FileNotFoundError):
-            path.unlink()

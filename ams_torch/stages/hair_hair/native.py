@@ -70,6 +70,10 @@ def p2g_op(x: torch.Tensor, v: torch.Tensor, m: torch.Tensor, frame: torch.Tenso
 
 
 def _p2g_kernel(x, v, m, frame, origin, cell_size, resolution, require_native):
+    if x.is_cuda and torch.are_deterministic_algorithms_enabled():
+        # the CUDA kernel's float atomics sum in a varying order (its binding alerts): the torch
+        # definition (index_add, deterministic in that mode) instead
+        return p2g_torch(x, v, m, frame, origin, cell_size, resolution)
     ns = _namespace(x, require_native, "P2G")
     if ns is None:
         return p2g_torch(x, v, m, frame, origin, cell_size, resolution)

@@ -9,6 +9,7 @@
 
 #include "banded_cholesky.h"
 #include "banded_cuda.h"
+#include "launch_cuda.cuh"
 
 namespace ams_torch {
 namespace banded {
@@ -17,8 +18,13 @@ namespace {
 constexpr int kTile = 32;          // transpose tile edge
 constexpr int kTileRows = 8;       // rows of threads per transpose block
 constexpr int kSolveThreads = 128; // threads (strands) per solve block
-constexpr int kSolveMinBlocks = 4; // resident blocks per SM asked of the register allocator (<= 128 registers)
-constexpr int64_t kMaxGrid = int64_t(1) << 20;
+// resident blocks per SM asked of the register allocator: 4 (<= 128 registers), 3 on sm_120+ (<= 170),
+// whose allocator spills the double solve at 128 (ptxas: 224 bytes; tests/test_ptxas_budget.py)
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 1200
+constexpr int kSolveMinBlocks = 3;
+#else
+constexpr int kSolveMinBlocks = 4;
+#endif
 
 // out[c, r] = in[r, c] for row-major `in` of shape (rows, cols). Grid-stride over 32×32 tiles.
 template <class T>
@@ -45,8 +51,7 @@ __global__ void transpose_kernel(const T* __restrict__ in, T* __restrict__ out, 
 template <class T>
 void launch_transpose(const T* in, T* out, int64_t rows, int64_t cols, cudaStream_t stream) {
   const int64_t tiles = ((rows + kTile - 1) / kTile) * ((cols + kTile - 1) / kTile);
-  const unsigned grid = unsigned(tiles < kMaxGrid ? tiles : kMaxGrid);
-  transpose_kernel<T><<<grid, dim3(kTile, kTileRows), 0, stream>>>(in, out, rows, cols);
+  transpose_kernel<T><<<cuda::grid_stride_blocks(tiles, 1), dim3(kTile, kTileRows), 0, stream>>>(in, out, rows, cols);
 }
 
 // a: strand-interleaved matrix rows (n × 36 values per strand), factored in place;
@@ -74,9 +79,10 @@ cudaError_t solve_banded_cuda(const T* blocks, const T* rhs, T* x, T* workspace,
   T* wb = workspace + strands * n * kRowElems;
   launch_transpose<T>(blocks, wa, strands, n * kRowElems, stream); // (S, 36n) -> (36n, S)
   launch_transpose<T>(rhs, wb, strands, n * kRhsElems, stream);    // (S, 3n)  -> (3n, S)
-  const int64_t grid = (strands + kSolveThreads - 1) / kSolveThreads;
+  const int threads = cuda::strand_block_threads(strands, kSolveThreads); // small solves: 32/64 threads per block
+  const int64_t grid = (strands + threads - 1) / threads;
   if (grid > 0x7fffffffLL) return cudaErrorInvalidConfiguration;
-  solve_kernel<T><<<unsigned(grid), kSolveThreads, 0, stream>>>(wa, wb, strands, n);
+  solve_kernel<T><<<unsigned(grid), threads, 0, stream>>>(wa, wb, strands, n);
   launch_transpose<T>(wb, x, n * kRhsElems, strands, stream); // (3n, S) -> (S, 3n)
   return cudaGetLastError();
 }

@@ -11,6 +11,7 @@
 
 #include "collide.h"
 #include "collide_cuda.h"
+#include "launch_cuda.cuh"
 #include "transpose_cuda.cuh"
 
 namespace ams_torch {
@@ -77,9 +78,10 @@ cudaError_t collide_cuda(const CollideArgs<T>& args, const CollideSettings& cfg,
     in.add(args.edge_rest_length, edge, S, N - 1);
   }
   frame::launch_transpose(in, stream);
-  const int64_t grid = (G + kStageThreads - 1) / kStageThreads;
+  const int threads = cuda::strand_block_threads(G, kStageThreads);
+  const int64_t grid = (G + threads - 1) / threads;
   if (grid > 0x7fffffffLL) return cudaErrorInvalidConfiguration;
-  stage_kernel<T><<<unsigned(grid), kStageThreads, 0, stream>>>(args, cfg, table, x, v, rest, edge);
+  stage_kernel<T><<<unsigned(grid), threads, 0, stream>>>(args, cfg, table, x, v, rest, edge);
   frame::TransposeBatch<T> back;
   back.add(x, xo, 3 * N, G);
   back.add(v, vo, 3 * N, G);

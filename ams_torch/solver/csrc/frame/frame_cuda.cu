@@ -17,13 +17,14 @@
 
 #include "frame.h"
 #include "frame_cuda.h"
+#include "launch_cuda.cuh"
 #include "transpose_cuda.cuh"
 
 namespace ams_torch {
 namespace frame {
 namespace {
 
-constexpr int kFrameThreads = 128; // strands per frame block
+constexpr int kFrameThreads = 128; // most strands per frame block (fewer for small scenes: strand_block_threads)
 constexpr int kPoseThreads = 64;
 
 // Workspace arrays (offsets in elements of T; model arrays hold count × strands values,
@@ -208,9 +209,10 @@ cudaError_t frame_cuda(const FrameArgs<T>& args, const FrameSettings& cfg, int64
   if (args.external_force != nullptr) in.add(args.external_force, ws.ext, G, 3 * N);
   launch_transpose(in, stream);
 
-  const int64_t grid = (G + kFrameThreads - 1) / kFrameThreads;
+  const int threads = cuda::strand_block_threads(G, kFrameThreads);
+  const int64_t grid = (G + threads - 1) / threads;
   if (grid > 0x7fffffffLL) return cudaErrorInvalidConfiguration;
-  frame_kernel<T><<<unsigned(grid), kFrameThreads, 0, stream>>>(args, cfg, ws, assemble_substep);
+  frame_kernel<T><<<unsigned(grid), threads, 0, stream>>>(args, cfg, ws, assemble_substep);
 
   TransposeBatch<T> back; // (values, strands) -> (strands, values)
   if (assemble_substep >= 0) {

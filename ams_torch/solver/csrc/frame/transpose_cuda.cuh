@@ -9,13 +9,14 @@
 
 #include <stdint.h>
 
+#include "launch_cuda.cuh"
+
 namespace ams_torch {
 namespace frame {
 
 constexpr int kTile = 32;     // transpose tile edge
 constexpr int kTileRows = 8;  // rows of threads per transpose block
 constexpr int kMaxJobs = 24;  // arrays per batched transpose
-constexpr int64_t kMaxTransposeGrid = int64_t(1) << 20;
 
 // out[c, r] = in[r, c] for row-major in (rows, cols), for every job of the batch.
 template <class T>
@@ -70,8 +71,7 @@ __global__ void transpose_batch_kernel(const TransposeBatch<T> batch) {
 template <class T>
 void launch_transpose(const TransposeBatch<T>& batch, cudaStream_t stream) {
   if (batch.tiles == 0) return;
-  const unsigned grid = unsigned(batch.tiles < kMaxTransposeGrid ? batch.tiles : kMaxTransposeGrid);
-  transpose_batch_kernel<T><<<grid, dim3(kTile, kTileRows), 0, stream>>>(batch);
+  transpose_batch_kernel<T><<<cuda::grid_stride_blocks(batch.tiles, 1), dim3(kTile, kTileRows), 0, stream>>>(batch);
 }
 
 } // namespace frame

@@ -1,8 +1,9 @@
 // CUDA kernels of the hair–hair grid: the arithmetic of grid.h (shared with the CPU kernels),
 // launched by the functions of grid_cuda.h. No torch headers (nvcc alone compiles this file).
 //
-//   P2G: one thread per particle, atomicAdd of mass and momentum into the faces (summation order,
-//        hence the last bits, vary between runs).
+//   P2G: one thread per particle, warp-aggregated atomicAdd of mass and momentum into the faces
+//        (summation order, hence the last bits, vary between runs; the binding tells torch's
+//        deterministic mode: alertNotDeterministic).
 //   pressure: setup over every cell (active cells take a slot of their scene's static-capacity
 //        list by atomicAdd; a cell with src > 0 marks its scene as pushing), then ONE launch for
 //        all Jacobi sweeps: one block per scene loops over its listed cells, __syncthreads()
@@ -15,6 +16,8 @@
 
 #include "grid.h"
 #include "grid_cuda.h"
+#include "launch_cuda.cuh"
+#include "warp_atomic_cuda.cuh"
 
 namespace ams_torch {
 namespace grid {
@@ -22,18 +25,14 @@ namespace {
 
 constexpr int kThreads = 256;       // threads per block of the per-particle / per-cell kernels
 constexpr int kSweepThreads = 512;  // threads of the one block per scene of the sweeps
-constexpr int64_t kMaxBlocks = int64_t(1) << 20;
 
-unsigned blocks_for(int64_t n) {
-  const int64_t b = (n + kThreads - 1) / kThreads;
-  return unsigned(b < 1 ? 1 : (b < kMaxBlocks ? b : kMaxBlocks));
-}
+unsigned blocks_for(int64_t n) { return cuda::grid_stride_blocks(n, kThreads); }
 
 template <class T>
 struct AtomicAdd {
   AMS_GRID_HD void operator()(T* ptr, T value) const {
 #if defined(__CUDA_ARCH__)
-    atomicAdd(ptr, value);
+    cuda::warp_aggregated_add(ptr, value);
 #else
     *ptr += value;
 #endif

@@ -3,6 +3,7 @@
 // kernels are in grid_cuda.cu (nvcc without torch headers). Runs on the current CUDA stream of
 // the inputs' device, with outputs and workspace from torch's caching allocator; reads the
 // scalars (target density, dt) on the device, so nothing synchronises with the host.
+#include <ATen/Context.h>
 #include <ATen/Dispatch.h>
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
@@ -52,6 +53,9 @@ at::Tensor p2g_cuda_op(const at::Tensor& x, const at::Tensor& v, const at::Tenso
   TORCH_CHECK(m.dim() == 2 && m.size(0) == x.size(0) && m.size(1) == x.size(1),
               "ams_torch_grid_cuda::p2g: m must be (B, P), got ", m.sizes());
   check_device("p2g", m, "m", x);
+  // float atomics: the summation order (the last bits of the faces) varies between runs. The registered
+  // op ams_torch::hair_hair_p2g takes the torch definition under torch.use_deterministic_algorithms(True).
+  at::globalContext().alertNotDeterministic("ams_torch_grid_cuda::p2g");
   const c10::cuda::CUDAGuard guard(x.device());
   const int64_t B = x.size(0), P = x.size(1), r = resolution;
   at::Tensor faces = at::empty({B, 3, num_faces(r), 2}, x.options());

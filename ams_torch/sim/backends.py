@@ -1,0 +1,128 @@
+"""Which native backends a simulator uses, built when it is constructed (never inside a step), and the
+smoke tests of the fused ops' backends.
+
+:func:`resolve_backend` is the simulator's backend decision: it builds (or loads) every backend the
+configuration needs, raises for ``backend="native"`` naming each one that cannot be had and why,
+and otherwise falls back to the torch definition with one warning per backend
+(:mod:`ams_torch.solver.build`). The probes registered here (frame, collisions, grid) are what
+``build`` runs right after loading such a backend: one tiny call compared with the torch definition.
+"""
+from __future__ import annotations
+
+from typing import List, Tuple
+
+import torch
+
+from ams_torch.geometry.pose import Pose
+from ams_torch.sim.contact import collisions_world
+from ams_torch.sim.dynamics import frame_dynamics
+from ams_torch.sim.model import Model, coefficients
+from ams_torch.sim.native import _COLLIDE_KINDS, _KINDS, NATIVE_DTYPES, collision_arguments, op_arguments
+from ams_torch.sim.params import Params
+from ams_torch.sim.state import Config
+from ams_torch.solver import build as _native, probes
+from ams_torch.stages.collide import SphereCollider, resolve_world_poses
+from ams_torch.stages.hair_hair.transfer import p2g_torch
+
+__all__ = ["needed_backends", "resolve_backend"]
+
+F64 = torch.float64
+
+
+def needed_backends(device, hair_hair: bool = False, colliders: bool = False) -> Tuple[List[str], List[str]]:
+    """The native backends a simulator on ``device`` uses: (required by ``backend="native"``, used
+    when there: the banded solve of the torch path, which frames that keep a gradient take).
+    Kinds of :mod:`ams_torch.solver.build`: ``frame_<dev>``, ``collide_<dev>`` with colliders,
+    ``grid_<dev>`` with hair–hair interaction; ``cpu``/``cuda`` (the banded solve)."""
+    dev = torch.device(device).type
+    if dev not in _KINDS:
+        return [], []
+    required = [_KINDS[dev]] + ([_COLLIDE_KINDS[dev]] if colliders else []) + ([f"grid_{dev}"] if hair_hair else [])
+    return required, [dev]
+
+
+def resolve_backend(backend: str, device, dtype, hair_hair: bool = False, colliders: bool = False) -> str:
+    """The step backend of a simulator, deciding and building everything now (not in the first step).
+
+    Builds (or loads) every native backend the configuration uses (:func:`needed_backends`): a
+    backend that cannot be had warns once (``NativeBuildWarning``, naming it and why) and its ops
+    take the torch definition. ``"native"``: raises ``ValueError`` naming each required backend that
+    is unavailable and why (or the dtype/device that has no native kernels). ``"auto"``: "native"
+    when the frame backend is there, else "torch". ``"torch"``: "torch" (the banded solve is still
+    built: the torch path uses it). Returns "native" or "torch".
+    """
+    dev = torch.device(device).type
+    required, optional = needed_backends(device, hair_hair, colliders)
+    if backend == "torch":
+        _native.ensure(optional)
+        return "torch"
+    if not required or dtype not in NATIVE_DTYPES:
+        if backend == "native":
+            raise ValueError(f"backend='native' but there are no native kernels for {dev}/{dtype}: they take "
+                             f"float32 or float64 tensors on CPU or CUDA")
+        return "torch"
+    missing = _native.ensure(required + optional)
+    lacking = {k: why for k, why in missing.items() if k in required}
+    if backend == "native" and lacking:
+        detail = "; ".join(f"{k}: {why}" for k, why in lacking.items())
+        raise ValueError(f"backend='native' but {len(lacking)} native backend(s) it needs cannot be had: {detail} "
+                         f"(ams_torch.native_status() has the details; backend='auto' runs the torch definition "
+                         f"for them)")
+    return "torch" if _KINDS[dev] in missing else "native"
+
+
+# -- smoke tests (registered with ams_torch.solver.probes) -----------------------------------------
+
+def _tiny(device, colliders=()):
+    """3 strands × 5 particles hanging at the origin, moving; (model, config, x, v, pose0, pose1)."""
+    z = torch.linspace(0.0, -0.04, 5, dtype=F64)
+    rest = torch.stack([torch.stack([torch.full_like(z, 0.01 * i), torch.zeros_like(z), z + 0.1], -1)
+                        for i in range(3)])
+    params = Params(substeps=1)
+    model = Model(rest, params, device=device, dtype=F64)
+    model.colliders = torch.nn.ModuleList([c.to(device=device, dtype=F64) for c in colliders])
+    config = Config(dt=float(params.dt), substeps=1, collision_rounds=1,
+                    projection_iterations=tuple(int(c.projection_iterations) for c in colliders),
+                    follow_head=tuple(bool(c.follow_head) for c in colliders))
+    g = torch.Generator().manual_seed(0)
+    x = model.rest_positions.clone()
+    v = 0.05 * torch.randn(x.shape, generator=g, dtype=F64).to(device)
+    pose0 = Pose.identity(device=device, dtype=F64)
+    pose1 = Pose.from_rotvec((0.0, 0.3, 0.1), (0.01, 0.0, 0.0), (0.6, 0.0, 0.0), (0.0, 18.0, 6.0), device=device,
+                             dtype=F64)
+    return model, config, x, v, pose0, pose1
+
+
+def _frame(ns, device) -> None:
+    model, config, x, v, pose0, pose1 = _tiny(device)
+    args = (model, coefficients(model), config, x, v, model.rest_positions, torch.zeros_like(x), pose0, pose1, True)
+    want = frame_dynamics(*args, torch.zeros((), dtype=F64, device=device), None)
+    got = ns.frame(*op_arguments(*args, None), -1)
+    probes.close(got[0], want[0], "frame (x)")
+    probes.close(got[1], want[1], "frame (v)")
+
+
+def _collide(ns, device) -> None:
+    model, config, x, v, _, pose1 = _tiny(device, [SphereCollider((0.01, 0.0, 0.08), 0.02, friction=0.3)])
+    x = x + torch.tensor([0.0, 0.0, -0.01], dtype=F64, device=device)
+    world = resolve_world_poses(list(model.colliders), pose1, None)
+    want = collisions_world(model, config, x, v, pose1, world)
+    got = ns.collide(*collision_arguments(model, config, x, v, pose1, world))
+    probes.close(got[0], want[0], "collide (x)")
+    probes.close(got[1], want[1], "collide (v)")
+
+
+def _grid(ns, device) -> None:
+    g = torch.Generator().manual_seed(0)
+    x = (0.3 * torch.rand(1, 6, 3, generator=g, dtype=F64) + 0.1).to(device)
+    v = torch.randn(1, 6, 3, generator=g, dtype=F64).to(device)
+    m = torch.full((1, 6), 1e-3, dtype=F64, device=device)
+    frame = torch.zeros(1, 6, 3, dtype=F64, device=device)
+    frame[0, :3] = torch.eye(3, dtype=F64, device=device)
+    origin = torch.zeros(3, dtype=F64, device=device)
+    probes.close(ns.p2g(x, v, m, frame, origin, 0.125, 4), p2g_torch(x, v, m, frame, origin, 0.125, 4), "p2g")
+
+
+probes.register("frame", _frame)
+probes.register("collide", _collide)
+probes.register("grid", _grid)

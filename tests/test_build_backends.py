@@ -1,0 +1,282 @@
+"""Native backends: built when the simulator is constructed, one warning per backend that cannot be,
+``backend="native"`` refusing with the backend and the reason, ``native_status()`` for every kind,
+the smoke test after loading, the architecture list of CUDA builds, and a cache that never loads a
+damaged library (issue 27 B1–B3, issue 28 item 5).
+
+Subprocess tests start from an empty process (and, where the test says so, an empty cache):
+whether something is built or warned is a per-process fact.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import built_native
+
+from ams_torch.solver import build as _native
+from ams_torch.solver.cuda_arch import nvcc_arches, parse_arch_list, resolve_arch_list
+
+REPO = Path(__file__).resolve().parents[1]
+SCENE = """
+import json, os, sys, warnings
+import torch
+import ams_torch
+from ams_torch import testing
+from ams_torch.solver import build
+from ams_torch.stages.collide import SphereCollider
+from ams_torch.stages.hair_hair import HairHair
+rest = testing.sphere_groom(12, 8, dtype=torch.float64)
+kw = dict(colliders=[SphereCollider((0.0, 0.0, 0.0), 0.106)], hair_hair=HairHair(resolution=8))
+def ours(caught):
+    return [str(w.message) for w in caught if issubclass(w.category, build.NativeBuildWarning)]
+"""
+
+
+def _run(script: str, tmp_path: Path, **env) -> dict:
+    full = dict(os.environ, PYTHONPATH=str(REPO), **env)
+    proc = subprocess.run([sys.executable, "-c", textwrap.dedent(SCENE) + textwrap.dedent(script)], env=full,
+                          capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def test_no_compiler_native_raises_auto_warns_once_per_backend_and_runs(tmp_path):
+    """CXX pointing nowhere, an empty cache: backend="native" raises naming every backend it needs and
+    why; "auto" warns once per backend (frame, collisions, grid, banded solve), at construction, and
+    runs 3 frames on the torch path; nothing warns again (steps, a second simulator)."""
+    out = _run("""
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            sim = ams_torch.Simulator(rest, dtype=torch.float64, backend="auto", **kw)
+            at_construction = ours(caught)
+            state = sim.initial_state()
+            for _ in range(3):
+                state = sim.step(state)
+            try:
+                ams_torch.Simulator(rest, dtype=torch.float64, backend="native", **kw)
+                error = None
+            except ValueError as e:
+                error = str(e)
+            later = ours(caught)[len(at_construction):]
+        print(json.dumps(dict(error=error, warned=at_construction, later=later, backend=sim.config.backend,
+                              finite=bool(torch.isfinite(state.x).all()),
+                              status={k: build.native_status()[k]["reason"] for k in
+                                      ("cpu", "frame_cpu", "collide_cpu", "grid_cpu")})))
+    """, tmp_path, CXX="/nonexistent/c++", AMS_TORCH_CACHE=str(tmp_path / "cache"))
+    for kind in ("frame_cpu", "collide_cpu", "grid_cpu"):
+        assert f"{kind}: no C++ compiler ('/nonexistent/c++')" in out["error"], out["error"]
+    assert "backend='native'" in out["error"]
+    warned = out["warned"]
+    assert len(warned) == 4, warned
+    for kind in ("cpu", "frame_cpu", "collide_cpu", "grid_cpu"):
+        assert sum(f"backend {kind!r} unavailable" in w for w in warned) == 1, (kind, warned)
+        assert "no C++ compiler" in out["status"][kind]
+    assert out["later"] == [] and out["backend"] == "torch" and out["finite"]
+    assert not (tmp_path / "cache").exists() or not any((tmp_path / "cache").iterdir())
+
+
+def test_construction_builds_every_backend_the_config_needs(tmp_path):
+    """With colliders and hair–hair, native_status() shows the frame, collision, grid and banded
+    backends built right after construction, before any step; and nothing is built in the steps."""
+    for kind in ("cpu", "frame_cpu", "collide_cpu", "grid_cpu"):
+        built_native(kind)  # (in the shared cache: the subprocess loads them)
+    out = _run("""
+        before = {k: build.native_status()[k]["attempted"] for k in ("cpu", "frame_cpu", "collide_cpu", "grid_cpu")}
+        sim = ams_torch.Simulator(rest, dtype=torch.float64, backend="native", **kw)
+        after = {k: build.native_status()[k]["built"] for k in ("cpu", "frame_cpu", "collide_cpu", "grid_cpu")}
+        plain = {k: build.native_status()[k]["attempted"] for k in ("cpu", "frame_cpu", "collide_cpu", "grid_cpu")}
+        def refuse(kind, st):
+            raise RuntimeError("built inside a step")
+        build._build_and_load = refuse
+        state = sim.initial_state()
+        for _ in range(2):
+            state = sim.step(state)
+        print(json.dumps(dict(before=before, after=after, backend=sim.config.backend,
+                              cuda=build.native_status()["frame_cuda"]["attempted"])))
+    """, tmp_path)
+    assert not any(out["before"].values()), out
+    assert all(out["after"].values()), out
+    assert out["backend"] == "native" and not out["cuda"]
+
+
+def test_simulator_without_colliders_builds_only_what_it_uses(tmp_path):
+    out = _run("""
+        sim = ams_torch.Simulator(rest, dtype=torch.float32)
+        st = build.native_status()
+        print(json.dumps({k: st[k]["attempted"] for k in ("cpu", "frame_cpu", "collide_cpu", "grid_cpu")}))
+    """, tmp_path)
+    assert out == {"cpu": True, "frame_cpu": True, "collide_cpu": False, "grid_cpu": False}
+
+
+def test_native_refuses_a_dtype_without_kernels():
+    from ams_torch import testing
+    import ams_torch
+
+    with pytest.raises(ValueError, match="no native kernels for cpu/torch.float16"):
+        ams_torch.Simulator(testing.sphere_groom(4, 6), dtype=torch.float16, backend="native")
+
+
+def test_native_status_lists_every_kind():
+    st = _native.native_status()
+    kinds = _native.kinds()
+    assert {"cpu", "cuda", "frame_cpu", "frame_cuda", "collide_cpu", "collide_cuda", "grid_cpu", "grid_cuda",
+            "frame_cuda_emu", "grid_cuda_emu", "collide_cuda_emu", "cuda_emu"} <= set(kinds)
+    for kind in kinds:
+        for key in ("built", "reason", "flags", "attempted", "library", "device", "notes"):
+            assert key in st[kind], (kind, key)
+        assert st[kind]["built"] or st[kind]["reason"], kind
+    if not torch.cuda.is_available():
+        assert "no CUDA device" in st["frame_cuda"]["reason"] or "without CUDA" in st["frame_cuda"]["reason"]
+    with pytest.raises(ValueError, match="unknown native backend"):
+        _native.native_ops("frame_tpu")
+
+
+def test_failed_smoke_test_makes_the_backend_unavailable(tmp_path):
+    """A library that loads but whose probe fails (e.g. built for another GPU architecture) is
+    unavailable, with the probe's error as the reason, and warned about once."""
+    built_native("cpu")
+    out = _run("""
+        from ams_torch.solver import probes
+        real = probes.probe
+        def broken(kind, ns, device):
+            if kind == "cpu":
+                raise AssertionError("solve_banded: relative difference 1 from the torch definition")
+            return real(kind, ns, device)
+        probes.probe = broken
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            first, second = build.native_ops("cpu"), build.native_ops("cpu")
+        st = build.native_status()["cpu"]
+        print(json.dumps(dict(none=first is None and second is None, built=st["built"], reason=st["reason"],
+                              warned=len(ours(caught)))))
+    """, tmp_path)
+    assert out["none"] and not out["built"] and out["warned"] == 1
+    assert "smoke test failed" in out["reason"] and "relative difference" in out["reason"]
+
+
+# -- the cache: a damaged library is never loaded, and is rebuilt -------------------------------
+
+TOY = """
+import json, os, sys, warnings
+from pathlib import Path
+from ams_torch.solver import build
+root = Path(sys.argv[1])
+build.CSRC_ROOT = root / "csrc"  # a backend of one small C++ file (no torch headers: builds in a second)
+build._ALL["toy_cpu"] = ("ams_torch_toy_cpu", ("toy/toy.cpp",), (), "ams_torch_toy_cpu", "cpu")
+build._state["toy_cpu"] = build._fresh_state()
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    ok = build.native_ops("toy_cpu") is not None
+st = build.native_status()["toy_cpu"]
+print(json.dumps(dict(ok=ok, reason=st["reason"], library=st["library"], build_dir=st["build_dir"],
+                      warned=sum(issubclass(w.category, build.NativeBuildWarning) for w in caught))))
+"""
+
+
+@pytest.fixture(scope="module")
+def toy_cache(tmp_path_factory):
+    """A cache holding one built toy backend; returns a function that loads it in a new process."""
+    root = tmp_path_factory.mktemp("toy")
+    (root / "csrc" / "toy").mkdir(parents=True)
+    (root / "csrc" / "toy" / "toy.cpp").write_text('extern "C" int ams_torch_toy() { return 42; }\n')
+
+    def load() -> dict:
+        env = dict(os.environ, PYTHONPATH=str(REPO), AMS_TORCH_CACHE=str(root / "cache"))
+        proc = subprocess.run([sys.executable, "-c", TOY, str(root)], env=env, capture_output=True, text=True,
+                              timeout=300)
+        assert proc.returncode == 0, f"rc {proc.returncode}: {proc.stderr[-3000:]}"
+        return json.loads(proc.stdout.strip().splitlines()[-1])
+
+    first = load()
+    assert first["ok"], first
+    return load, Path(first["build_dir"])
+
+
+@pytest.mark.parametrize("damage", ["truncated", "empty", "random", "no_hash"])
+def test_damaged_cached_library_is_rebuilt_not_loaded(toy_cache, damage):
+    """The cached library damaged (a truncated one used to kill every process with SIGBUS; an empty
+    or random one fell back to torch and was never rebuilt): the next process checks the recorded
+    size and SHA-256 before loading, rebuilds (relinks: the cached objects are intact), loads the
+    new library and records it."""
+    load, build_dir = toy_cache
+    marker = json.loads((build_dir / _native.MARKER_NAME).read_text())
+    lib = build_dir / marker["library"]
+    data = lib.read_bytes()
+    if damage == "truncated":
+        lib.write_bytes(data[: len(data) // 3])
+    elif damage == "empty":
+        lib.write_bytes(b"")
+    elif damage == "random":
+        lib.write_bytes(os.urandom(len(data)))
+    else:  # a marker of the old format: no size and hash recorded
+        (build_dir / _native.MARKER_NAME).write_text(json.dumps({"library": marker["library"], "key": marker["key"]}))
+    assert _native._cached_library(build_dir) is None
+    out = load()
+    assert out["ok"] and out["warned"] == 0 and Path(out["library"]) == lib, out
+    fresh = json.loads((build_dir / _native.MARKER_NAME).read_text())
+    assert fresh["size"] == lib.stat().st_size > 0 and _native._cached_library(build_dir) == lib
+
+
+def test_intact_cached_library_is_loaded_as_it_is(tmp_path):
+    built_native("cpu")
+    src = Path(_native.native_status()["cpu"]["build_dir"])
+    dst = tmp_path / "cache" / src.name
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("*.lock", "lock"))
+    lib = _native._cached_library(dst)
+    assert lib is not None
+    stamp = lib.stat().st_mtime_ns
+    out = _run("""
+        ok = build.native_ops("cpu") is not None
+        print(json.dumps(dict(ok=ok)))
+    """, tmp_path, AMS_TORCH_CACHE=str(tmp_path / "cache"))
+    assert out["ok"] and lib.stat().st_mtime_ns == stamp
+
+
+# -- CUDA architectures (B1) ----------------------------------------------------------------------
+
+TORCH_ARCHES = ["sm_75", "sm_80", "sm_86", "sm_90", "sm_100", "sm_120", "compute_120"]
+NVCC13 = {"7.5", "8.0", "8.6", "8.7", "8.8", "8.9", "9.0", "10.0", "10.3", "11.0", "12.0", "12.1"}
+
+
+def test_arch_list_unset_follows_the_devices_clamped_with_ptx():
+    assert resolve_arch_list(None, [(9, 0)], TORCH_ARCHES, NVCC13) == ("9.0+PTX", [])
+    archs, notes = resolve_arch_list("", [(9, 0), (8, 0), (9, 0)], TORCH_ARCHES, NVCC13)
+    assert archs == "8.0;9.0+PTX" and notes == []
+    # a GPU newer than torch and the toolkit: the newest supported architecture, as PTX
+    archs, notes = resolve_arch_list(None, [(13, 0)], TORCH_ARCHES, NVCC13)
+    assert archs == "12.0+PTX" and "newer" in notes[0]
+    archs, _ = resolve_arch_list(None, [(12, 0)], TORCH_ARCHES, {"7.5", "8.0", "9.0"})  # an older nvcc
+    assert archs == "9.0+PTX"
+
+
+def test_arch_list_preset_is_checked_and_completed():
+    archs, notes = resolve_arch_list("5.2;7.0;8.0", [(9, 0)], TORCH_ARCHES, NVCC13)
+    assert archs == "8.0;9.0"
+    assert any("5.2 left out" in n for n in notes) and any("7.0 left out" in n for n in notes)
+    assert any("added 9.0" in n for n in notes)
+    archs, notes = resolve_arch_list("Hopper", [(9, 0)], TORCH_ARCHES, NVCC13)
+    assert archs == "9.0+PTX" and notes == []
+    archs, notes = resolve_arch_list("8.0 9.0a", [], TORCH_ARCHES, None)  # no device, nvcc unknown
+    assert archs == "8.0;9.0a" and notes == []
+    with pytest.raises(ValueError, match="no architecture left"):
+        resolve_arch_list("5.2;6.1", [], TORCH_ARCHES, NVCC13)
+    with pytest.raises(ValueError, match="'sm90' is not an architecture"):
+        parse_arch_list("8.0;sm90")
+    with pytest.raises(ValueError, match="no CUDA device"):
+        resolve_arch_list(None, [], TORCH_ARCHES, NVCC13)
+
+
+def test_nvcc_arches_parses_the_toolkit():
+    nvcc = shutil.which("nvcc")
+    if nvcc is None:
+        pytest.skip("nvcc not found")
+    found = nvcc_arches(nvcc)
+    assert found and "9.0" in found and "8.0" in found
+    assert nvcc_arches("/nonexistent/nvcc") is None
