@@ -1,5 +1,6 @@
-"""The dataset format (version 2): names, units and dims, checksums, listing and opening files,
-file headers, which files belong together, and the output folder's lock record."""
+"""The dataset format (version 3; version 2 is still read): names, units and dims, checksums,
+listing and opening files, file headers, which files belong together, and the output folder's
+lock record."""
 from __future__ import annotations
 
 import glob
@@ -12,13 +13,18 @@ from typing import Dict, Iterable, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "SEQ_PREFIX", "SPLITS", "SHARD_FILE", "ARRAYS", "FRAMED", "PER_FRAME",
+__all__ = ["FORMAT", "FORMAT_VERSION", "READ_VERSIONS", "GUIDES_ALONE", "alone_name", "alone_count", "is_framed",
+           "array_info", "SEQ_PREFIX", "SPLITS", "SHARD_FILE", "ARRAYS", "FRAMED", "PER_FRAME",
            "PER_SEQUENCE", "POSE_FIELDS", "LOCK_FILE", "FRAME_DIGESTS", "DatasetError", "sequence_name",
            "array_digest", "sequence_checksum", "list_files", "open_dataset", "read_header", "check_together",
            "holder_text", "lock_holder"]
 
 FORMAT = "ams_torch.dataset"
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
+#: versions this library reads: 2 (before guides alone, motion velocities, num_pinned and hold-outs) and 3
+READ_VERSIONS = (2, 3)
+#: per-frame arrays ``guides_alone_<G>`` (F, G, N, 3) m: the first G guides simulated alone
+GUIDES_ALONE = "guides_alone_"
 SEQ_PREFIX = "seq_"
 SPLITS = ("train", "valid", "test")
 SHARD_FILE = re.compile(r"^(?P<name>.+)-shard-(?P<i>\d{5})-of-(?P<n>\d{5})\.h5$")
@@ -29,11 +35,36 @@ ARRAYS = {"positions": ("m", "frame,strand,particle,xyz"), "velocities": ("m/s",
           "angular_velocities": ("rad/s", "frame,xyz"), "collider_rotations": ("1", "frame,collider,row,column"),
           "collider_translations": ("m", "frame,collider,xyz"), "rest_positions": ("m", "strand,particle,xyz"),
           "root_triangles": ("index", "strand"), "root_barycentrics": ("1", "strand,corner"),
-          "guide_indices": ("index", "guide"), "vertices": ("m", "vertex,xyz"), "faces": ("index", "face,corner")}
-FRAMED = ("positions", "velocities", "guide_positions")  # large per-frame arrays: per-frame digests
+          "guide_indices": ("index", "guide"), "vertices": ("m", "vertex,xyz"), "faces": ("index", "face,corner"),
+          "motion_velocities": ("m/s", "frame,strand,particle,xyz"), "num_pinned": ("count", "strand")}
+FRAMED = ("positions", "velocities", "guide_positions", "motion_velocities")  # large per-frame arrays: per-frame digests
 PER_FRAME = FRAMED + ("rotations", "translations", "linear_velocities", "angular_velocities",
                       "collider_rotations", "collider_translations")
-PER_SEQUENCE = ("rest_positions", "root_triangles", "root_barycentrics", "guide_indices")
+PER_SEQUENCE = ("rest_positions", "root_triangles", "root_barycentrics", "guide_indices", "num_pinned")
+
+
+def alone_name(count: int) -> str:
+    """The array of the first ``count`` guides simulated alone: ``guides_alone_64``."""
+    return f"{GUIDES_ALONE}{int(count)}"
+
+
+def alone_count(name: str) -> Optional[int]:
+    """G of an array name ``guides_alone_<G>``, else None."""
+    if name.startswith(GUIDES_ALONE) and name[len(GUIDES_ALONE):].isdigit():
+        return int(name[len(GUIDES_ALONE):])
+    return None
+
+
+def is_framed(name: str) -> bool:
+    """Whether array ``name`` is a large per-frame array with per-frame digests."""
+    return name in FRAMED or alone_count(name) is not None
+
+
+def array_info(name: str) -> Tuple[str, str]:
+    """(units, dims) of a stored array (the ``units`` and ``dims`` attributes it carries)."""
+    if alone_count(name) is not None:
+        return "m", "frame,guide,particle,xyz"
+    return ARRAYS[name]
 POSE_FIELDS = ("rotations", "translations", "linear_velocities", "angular_velocities")
 LOCK_FILE = ".lock"  # held (flock) by a generate run writing the folder; see ams_torch.apps.datagen
 FRAME_DIGESTS = "frame_sha256"  # subgroup of a sequence: (F, 32) uint8 SHA-256 of each frame of each FRAMED array
@@ -91,12 +122,12 @@ def open_dataset(path: str):
     if fmt != FORMAT:
         f.close()
         raise DatasetError(f"{path}: not an ams_torch dataset (attribute format = {fmt!r})")
-    if version != FORMAT_VERSION:
+    if version not in READ_VERSIONS:
         f.close()
         hint = ("regenerate it with `ams-torch generate` (its recipe is in the file's 'recipe' attribute)"
                 if version is not None and int(version) < FORMAT_VERSION else "upgrade ams_torch to read it")
-        raise DatasetError(f"{path}: format_version {version} is not read by this library (it reads version "
-                           f"{FORMAT_VERSION}); {hint}")
+        raise DatasetError(f"{path}: format_version {version} is not read by this library (it reads versions "
+                           f"{', '.join(str(v) for v in READ_VERSIONS)}); {hint}")
     return f
 
 

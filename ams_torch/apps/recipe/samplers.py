@@ -121,6 +121,8 @@ def first(v):
 
 
 def put(v, path: tuple, value):
+    if not path:  # the whole value is the sampler
+        return copy.deepcopy(value)
     out = copy.deepcopy(v)
     node = out
     for p in path[:-1]:
