@@ -18,12 +18,12 @@ from ams_torch.apps.data.dataset import (HairSequenceDataset, read_dataset_seque
                                          stored_pinned_counts)
 from ams_torch.apps.data.format import (ARRAYS, FORMAT, FORMAT_VERSION, FRAME_DIGESTS, FRAMED, LOCK_FILE, PER_FRAME,
                                         PER_SEQUENCE, POSE_FIELDS, READ_VERSIONS, SHARD_FILE, SPLITS, DatasetError,
-                                        alone_name, array_digest, check_together, list_files, lock_holder, read_header,
-                                        sequence_checksum, sequence_name)
+                                        alone_name, array_digest, check_together, list_datasets, list_files,
+                                        lock_holder, read_header, sequence_checksum, sequence_name)
 from ams_torch.apps.data.validation import ValidationReport, validate, validate_file
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "DatasetError", "ValidationReport", "sequence_name", "array_digest",
            "sequence_checksum", "validate_file", "validate", "list_files", "read_header", "check_together",
            "lock_holder", "read_scene_meshes", "read_dataset_sequence", "HairSequenceDataset", "PER_FRAME",
            "PER_SEQUENCE", "FRAMED", "ARRAYS", "SPLITS", "SHARD_FILE", "LOCK_FILE", "FRAME_DIGESTS", "POSE_FIELDS",
-           "READ_VERSIONS", "alone_name", "stored_pinned_counts"]
+           "READ_VERSIONS", "alone_name", "stored_pinned_counts", "list_datasets"]

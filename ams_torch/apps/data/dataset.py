@@ -63,6 +63,10 @@ def read_dataset_sequence(root, index: Optional[int] = None) -> dict:
     return out
 
 
+#: sample keys a guides=G item always makes itself (not through ``fields``)
+_SAMPLE_OWN = ("guide_positions", "collider_rotations", "collider_translations")
+
+
 def stored_pinned_counts(params: dict, rest: np.ndarray) -> np.ndarray:
     """(S,) int64: the pinned prefix of every strand as the simulator counts it
     (:func:`ams_torch.sim.model.pinned_counts`) from a sequence's stored ``params`` JSON and
@@ -117,7 +121,8 @@ class HairSequenceDataset(torch.utils.data.Dataset):
     ``rest_positions`` (S, N, 3) m head frame, ``num_pinned`` (S,) long (particles per strand
     that follow the head, as the simulator counts them), ``rotations`` (W, 3, 3),
     ``translations`` (W, 3) m, ``collider_rotations`` (W, C, 3, 3) and
-    ``collider_translations`` (W, C, 3) m when the scene has ``[[colliders]]``, ``positions``
+    ``collider_translations`` (W, C, 3) m of the scene's ``[[colliders]]`` (C = 0 when the
+    sequence has none; a recipe may draw its colliders per batch group), ``positions``
     (W, S, N, 3) m (the dense target) when stored, the per-frame ``fields`` asked for (e.g.
     ``["velocities"]``), ``sequence`` and ``start``. Without ``guides``:
 
@@ -180,8 +185,7 @@ class HairSequenceDataset(torch.utils.data.Dataset):
         if guides is not None:
             self._check_guides(root, guides, available)
             sample = ["positions"] * ("positions" in available) + ["rotations", "translations"]
-            sample += [k for k in ("collider_rotations", "collider_translations") if k in available]
-            fields = sample + [k for k in (fields or ()) if k not in sample and k != "guide_positions"]
+            fields = sample + [k for k in (fields or ()) if k not in sample and k not in _SAMPLE_OWN]
         elif fields is None:
             fields = [k for k in ("positions", "guide_positions", "rotations", "translations") if k in available]
         missing = [k for k in fields if k not in available]
@@ -286,6 +290,10 @@ class HairSequenceDataset(torch.utils.data.Dataset):
                 out[k] = self._tensor(self._read(fi, name, k, slice(None)))
         if self.guides is not None:
             out.update(self._sample_static(fi, name))
+            for k, tail in (("collider_rotations", (3, 3)), ("collider_translations", (3,))):
+                # per sequence: colliders may be drawn per batch group; none stored -> C = 0
+                a = self._read(fi, name, k, w) if k in g else np.zeros((w.stop - w.start, 0) + tail, np.float32)
+                out[k] = self._tensor(a)
             if self.guide_source == "alone":
                 gp = self._read(fi, name, alone_name(self.guides), w)
             else:

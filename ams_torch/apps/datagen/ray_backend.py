@@ -7,7 +7,8 @@ from typing import Callable, List, Optional
 
 import torch
 
-from ams_torch.apps.datagen.shards import check_output, check_sharding, finish_shard, output_lock, prepare_shard
+from ams_torch.apps.datagen.shards import (check_output, check_sharding, finish_shard, log_plan, output_lock,
+                                           prepare_shard)
 from ams_torch.apps.datagen.writer import write_group
 from ams_torch.apps.recipe import Recipe
 
@@ -110,6 +111,7 @@ def generate_ray(recipe: Recipe, out: str, num_shards: int, address: Optional[st
     out = os.path.abspath(out)
     with output_lock(out, wait, log):
         check_output(recipe, out, num_shards)
+        log_plan(recipe, log)
         plans = [prepare_shard(recipe, out, i, num_shards) for i in range(num_shards)]
         todo = [(p, g) for p in plans if not p["complete"] for g in p["groups"] if g not in p["done"]]
         total = sum(len(p["groups"]) for p in plans)

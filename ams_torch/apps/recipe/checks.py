@@ -79,7 +79,7 @@ TOP = {"name": (_name, ABSENT), "description": (string, ABSENT), "sequences": (i
        "dt": (number(0, open_lo=True), ABSENT), "substeps": (integer(1), ABSENT),
        "seed": (integer(0, 2**63 - 1), ABSENT), "dtype": (one_of("float32", "float64"), ABSENT),
        "store": (_table("store", STORE), ABSENT), "split": (_table("split", SPLIT), ABSENT),
-       "single_groom": (boolean, ABSENT),
+       "single_groom": (boolean, ABSENT), "requires": (list_of(string), ABSENT),
        **{k: (_any, ABSENT) for k in ("head", "groom", "params", "stages", "hair_hair", "colliders",
                                       "motion", "wind")}}
 _FIXED = ("head", "stages", "hair_hair", "dt", "substeps")

@@ -13,13 +13,13 @@ import numpy as np
 
 from ams_torch.apps.recipe.checks import (SPLIT_DEFAULTS, SPLITS, STORE_DEFAULTS, check_sampler_values, check_top,
                                           guide_counts, motion_common, motion_types)
-from ams_torch.apps.recipe.samplers import RecipeError, _fail, has_sampler, sample
+from ams_torch.apps.recipe.samplers import MissingRequirement, RecipeError, _fail, has_sampler, sample
 from ams_torch.apps.scene import SceneError, parse_scene, read_toml
 from ams_torch.apps.scene.checks import is_number
 
 __all__ = ["Recipe", "load_recipe", "parse_recipe"]
 
-_NOT_HASHED = ("name", "description", "sequences", "store", "split", "single_groom")
+_NOT_HASHED = ("name", "description", "sequences", "store", "split", "single_groom", "requires")
 _RANDOM_MOTION = {"keys": 4, "duration": None, "max_angle": 0.6, "max_translation": 0.05}
 _GROUP, _SEQUENCE, _SPLIT = 0, 1, 2
 
@@ -206,13 +206,13 @@ class Recipe:
     def group_spec(self, g: int) -> Dict[str, Any]:
         """The draws of batch group g: concrete ``groom`` and ``params`` tables (JSON-friendly)."""
         rng = self.rng(_GROUP, g)
-        groom = sample(self.raw.get("groom", {"kind": "sphere"}), rng)
+        groom = sample(self.raw.get("groom", {"kind": "sphere"}), rng, g)
         if "seed" not in groom and ("preset" in groom):
             groom["seed"] = int(rng.integers(0, 2**31 - 1))
-        params = sample(self.raw.get("params", {}), rng)
+        params = sample(self.raw.get("params", {}), rng, g)
         out = {"group": g, "groom": groom, "params": params}
         if "colliders" in self.raw:  # drawn last: recipes without samplers there draw as before
-            out["colliders"] = sample(self.raw["colliders"], rng)
+            out["colliders"] = sample(self.raw["colliders"], rng, g)
         return out
 
     def sequence_spec(self, i: int) -> Dict[str, Any]:
@@ -222,13 +222,13 @@ class Recipe:
             raise IndexError(f"sequence {i} out of range (recipe {self.name!r} has {self.num_sequences})")
         rng = self.rng(_SEQUENCE, i)
         where = f"{self.where} (sequence {i})"
-        kind, motion = self._draw_motion(rng, where)
+        kind, motion = self._draw_motion(rng, where, i)
         wind = None
         w = self.raw.get("wind")
         if w is not None:
             p = float(w.get("probability", 1.0))
             on = bool(rng.uniform() < p)  # always drawn, so later draws do not depend on p
-            drawn = sample({k: v for k, v in w.items() if k != "probability"}, rng)
+            drawn = sample({k: v for k, v in w.items() if k != "probability"}, rng, i)
             seed = int(rng.integers(0, 2**31 - 1))
             if on:
                 drawn.setdefault("seed", seed)
@@ -236,16 +236,16 @@ class Recipe:
         return {"index": i, "group": i // self.batch, "seed": self.sequence_seed(i), "motion": motion, "wind": wind,
                 "motion_type": kind}
 
-    def _draw_motion(self, rng: np.random.Generator, where: str) -> tuple:
-        """(the drawn motion type, e.g. "random", and the concrete motion dict)."""
+    def _draw_motion(self, rng: np.random.Generator, where: str, index: int = 0) -> tuple:
+        """(the drawn motion type, e.g. "random", and the concrete motion dict) of sequence ``index``."""
         m = self.raw.get("motion")
         if m is None:
             return "static", {"type": "static"}
-        kind = sample(m.get("type", "static"), rng)
+        kind = sample(m.get("type", "static"), rng, index)
         if not isinstance(kind, str) or kind not in motion_types():
             _fail(where, f"[motion].type must be one of {sorted(motion_types())}; got {kind!r}")
-        args = sample(motion_common(m), rng)
-        args.update(sample(m.get(kind, {}), rng))
+        args = sample(motion_common(m), rng, index)
+        args.update(sample(m.get(kind, {}), rng, index))
         return kind, self._concrete_motion(kind, args, rng, where)
 
     def _concrete_motion(self, kind: str, args: dict, rng: np.random.Generator, where: str) -> dict:
@@ -310,6 +310,11 @@ def parse_recipe(raw: dict, where: str = "recipe", base: str = ".") -> Recipe:
     raw = copy.deepcopy(raw)
     raw.setdefault("name", "dataset")
     check_top(raw, where, base)
+    for req in raw.get("requires", []):
+        path = req if os.path.isabs(req) else os.path.join(base, req)
+        if not os.path.exists(path):
+            raise MissingRequirement(f"{where}: requires {req!r} ({os.path.normpath(path)}), which is absent (e.g. "
+                                     f"the real assets of ../shared/assets); a suite skips this recipe")
     content = {k: v for k, v in raw.items() if k not in _NOT_HASHED}
     digest = hashlib.sha256(_canonical(content).encode()).hexdigest()
     recipe = Recipe(raw=raw, where=where, base=base, hash=digest)

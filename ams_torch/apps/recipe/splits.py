@@ -14,18 +14,21 @@ whole grooms) and hold-outs that go to test whatever the shares say.
     groom_seed = [3, 4]           # groom seeds ([groom].seed): every batch group of that groom
     preset = ["ponytail"]         # groom presets: every batch group of that preset
 
-Rules. Group hold-outs (collider, groom_seed, preset) send whole units to test (with
-``by = "groom"`` a groom with one held-out group goes to test with all its groups, so a groom is
-never in two splits). The shares then split the remaining units: a permutation drawn from the
-recipe's seed (``SeedSequence([h, seed], spawn_key=(2, 0))``) cut into runs of share × units,
-rounded by largest remainder (so with no hold-outs and ``by = "group"`` the split is the one of
-format 2). Last, a sequence whose motion type is held out goes to test (its groom may then be in
-another split too: that hold-out is about unseen motions, not unseen grooms). Each sequence
-records why it is in test: its hold-out tags (``"motion"``, ``"collider"``, ``"groom_seed"``,
-``"preset"``; none for the shares).
+Rules. The groom hold-outs (groom_seed, preset) send whole units to test: with
+``by = "groom"`` every batch group of a held-out groom, so a groom is never in two splits. The
+shares then split the remaining units: a permutation drawn from the recipe's seed
+(``SeedSequence([h, seed], spawn_key=(2, 0))``) cut into runs of share × units, rounded by
+largest remainder (so with no hold-outs and ``by = "group"`` the split is the one of format 2).
+Last, the scene hold-outs move to test every batch group that draws a held-out collider and
+every sequence whose motion type is held out, whatever split their unit has: these are about
+unseen colliders and motions, so their grooms may be in train too. Each sequence records why it
+is in test: its hold-out tags (``"motion"``, ``"collider"``, ``"groom_seed"``, ``"preset"``;
+none for the shares). So the test sequences without the tags "motion" and "collider" show
+grooms that no train sequence has, when the split is ``by = "groom"`` (or each batch group has
+its own groom).
 
-Every hold-out value must be one the recipe can draw, and the hold-outs must leave a unit for
-each split with a positive share, or reading the recipe fails naming the key.
+Every hold-out value must be one the recipe can draw, and the hold-outs must not empty a split
+that the shares alone would give sequences, or reading the recipe fails naming the key.
 """
 from __future__ import annotations
 
@@ -50,7 +53,7 @@ def drawable_values(v) -> list:
     if not is_sampler(v):
         return [v]
     kind, arg = next(iter(v.items()))
-    if kind == "choice":
+    if kind in ("choice", "cycle"):
         return list(arg)
     if kind == "randint":
         return list(range(int(arg[0]), int(arg[1]) + 1)) if arg[1] - arg[0] <= 10**6 else None
@@ -106,7 +109,8 @@ def check_hold_out(recipe: "Recipe") -> None:
                          f"be held out")
 
 
-def _group_tags(recipe: "Recipe", g: int, hold: dict) -> List[str]:
+def _group_tags(recipe: "Recipe", g: int, hold: dict) -> Tuple[List[str], List[str]]:
+    """(groom hold-out tags, scene hold-out tags) of batch group g."""
     spec = recipe.group_spec(g)
     groom = spec["groom"]
     tags = []
@@ -114,15 +118,23 @@ def _group_tags(recipe: "Recipe", g: int, hold: dict) -> List[str]:
         tags.append("groom_seed")
     if groom.get("preset") in hold.get("preset", ()):
         tags.append("preset")
-    if any(c.get("type") in hold.get("collider", ()) for c in spec.get("colliders", [])):
-        tags.append("collider")
-    return tags
+    scene = ["collider"] if any(c.get("type") in hold.get("collider", ()) for c in spec.get("colliders", [])) else []
+    return tags, scene
+
+
+def _shares(ratios: dict, n: int) -> List[int]:
+    """Units per split: share × n rounded by largest remainder (ties to the earlier split)."""
+    exact = [ratios[k] * n for k in _SPLITS]
+    counts = [int(math.floor(e)) for e in exact]
+    for j in sorted(range(len(_SPLITS)), key=lambda j: (-(exact[j] - counts[j]), j))[:n - sum(counts)]:
+        counts[j] += 1
+    return counts
 
 
 def compute_splits(recipe: "Recipe") -> Tuple[List[str], List[str], List[List[str]]]:
     """(split of every batch group, split of every sequence, hold-out tags of every sequence)
-    following the rules of the module docstring. A group's split is that of its sequences before
-    the motion hold-out."""
+    following the rules of the module docstring. A group's split is that of its unit (the shares
+    and the groom hold-outs), before the scene hold-outs."""
     rules = recipe.raw.get("split", {})
     hold = rules.get("hold_out", {})
     ratios = recipe.split_ratios
@@ -137,16 +149,13 @@ def compute_splits(recipe: "Recipe") -> Tuple[List[str], List[str], List[List[st
     else:
         unit_of = list(range(n_groups))
     n_units = max(unit_of) + 1 if unit_of else 0
-    group_tags = [_group_tags(recipe, g, hold) if any(k in hold for k in ("groom_seed", "preset", "collider")) else []
-                  for g in range(n_groups)]
+    tagged = any(k in hold for k in ("groom_seed", "preset", "collider"))
+    group_tags = [_group_tags(recipe, g, hold) if tagged else ([], []) for g in range(n_groups)]
     unit_tags: List[set] = [set() for _ in range(n_units)]
     for g, u in enumerate(unit_of):
-        unit_tags[u] |= set(group_tags[g])
+        unit_tags[u] |= set(group_tags[g][0])
     free = [u for u in range(n_units) if not unit_tags[u]]
-    exact = [ratios[k] * len(free) for k in _SPLITS]
-    counts = [int(math.floor(e)) for e in exact]
-    for j in sorted(range(len(_SPLITS)), key=lambda j: (-(exact[j] - counts[j]), j))[:len(free) - sum(counts)]:
-        counts[j] += 1
+    counts = _shares(ratios, len(free))
     order = recipe.rng(2, 0).permutation(len(free))  # kind 2: the split stream
     unit_split = ["test"] * n_units
     pos = 0
@@ -159,17 +168,19 @@ def compute_splits(recipe: "Recipe") -> Tuple[List[str], List[str], List[List[st
     held_motion = set(hold.get("motion", ()))
     for i in range(recipe.num_sequences):
         g = i // recipe.batch
-        tags = sorted(unit_tags[unit_of[g]])
+        tags = sorted(unit_tags[unit_of[g]] | set(group_tags[g][1]))
         if held_motion and recipe.sequence_spec(i)["motion_type"] in held_motion:
             tags = sorted(set(tags) | {"motion"})
         seq_split.append("test" if tags else groups[g])
         seq_tags.append(tags)
-    if hold:
-        for name, c in zip(_SPLITS, counts):
-            if ratios[name] > 0 and name not in seq_split:
-                _fail(recipe.where, f"[split]: the hold-outs leave no sequence for the {name} split (share "
-                                    f"{ratios[name]:g}; {len(free)} of {n_units} {rules.get('by', 'group')} unit(s) "
-                                    f"are not held out); hold out less or set {name} = 0")
+    if hold:  # a split the shares fill without the hold-outs must not be emptied by them
+        for name, c, c_all in zip(_SPLITS, counts, _shares(ratios, n_units)):
+            if c_all > 0 and name not in seq_split:
+                by = rules.get("by", "group")
+                _fail(recipe.where, f"[split]: no sequence goes to the {name} split: its share {ratios[name]:g} of "
+                                    f"the {len(free)} {by} unit(s) left after the hold-outs (of {n_units}) rounds to "
+                                    f"{c}, or the scene hold-outs took them; use more batch groups"
+                                    f"{' or grooms' if by == 'groom' else ''}, hold out less, or set {name} = 0")
     return groups, seq_split, seq_tags
 
 
