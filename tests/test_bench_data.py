@@ -379,3 +379,20 @@ def test_mini_suite_generates_into_a_benchmark_dataset(tmp_path):
     assert item["collider_rotations"].shape == (10, 1, 3, 3)
     with pytest.raises(MissingRequirement, match="requires 'no/such/folder'"):
         load_recipe(str(suite / "assets.toml"))
+
+
+def test_cli_generates_a_suite_folder(tmp_path, capsys):
+    from ams_torch.apps.cli import main
+
+    suite = tmp_path / "suite"
+    suite.mkdir()
+    (suite / "a.toml").write_text(BASE.replace('name = "guides"', 'name = "first"').replace("sequences = 4", "sequences = 2"))
+    (suite / "b.toml").write_text('requires = ["../no_assets"]\n' + BASE.replace('name = "guides"', 'name = "second"'))
+    assert main(["generate", str(suite), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert "skipping b.toml" in text and "requires '../no_assets'" in text and "first: grooms: one groom" in text
+    assert list_datasets(str(tmp_path / "out")) == [str(tmp_path / "out" / "first")]
+    assert main(["validate", str(tmp_path / "out" / "first"), "--quiet"]) == 0
+    (suite / "c.toml").write_text(BASE.replace('name = "guides"', 'name = "first"'))
+    assert main(["generate", str(suite), "--out", str(tmp_path / "out2"), "--quiet"]) != 0
+    assert "c.toml have the same name 'first' (one output folder each); rename one" in capsys.readouterr().err

@@ -111,12 +111,12 @@ def generate_ray(recipe: Recipe, out: str, num_shards: int, address: Optional[st
     out = os.path.abspath(out)
     with output_lock(out, wait, log):
         check_output(recipe, out, num_shards)
-        log_plan(recipe, log)
         plans = [prepare_shard(recipe, out, i, num_shards) for i in range(num_shards)]
         todo = [(p, g) for p in plans if not p["complete"] for g in p["groups"] if g not in p["done"]]
         total = sum(len(p["groups"]) for p in plans)
         if len(todo) < total:
             log(f"resuming: {total - len(todo)} of {total} batch groups already done")
+        log_plan(recipe, log)
         if todo:
             _run_ray(ray, recipe, todo, total, total - len(todo), address, device, cpus_per_task, progress, log,
                      on_group)
