@@ -85,7 +85,8 @@ def main(argv=None):
     for r in rows:
         fmt = lambda v: " / ".join(f"{x:.1f}" for x in v)  # noqa: E731
         lines.append(f"| {r['preset']} | {'clumped' if r['clumped'] else 'independent'} | {fmt(r['mean_mm'])} | "
-                     f"{fmt(r['within_mm']) if r['clumped'] else '–'} | {fmt(r['across_mm']) if r['clumped'] else '–'} | "
+                     f"{fmt(r['within_mm']) if r['clumped'] else '–'} | "
+                     f"{fmt(r['across_mm']) if r['clumped'] else '–'} | "
                      f"{' / '.join(f'{x:.0%}' for x in r['share_within']) if r['clumped'] else '–'} | "
                      f"{' / '.join(str(c) for c in r['clumps']) if r['clumped'] else '–'} |")
     out = Path(a.out)

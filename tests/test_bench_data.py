@@ -98,7 +98,8 @@ def test_guides_alone_are_stored_validated_and_match_the_dense_run_without_hair_
 
 def test_guides_alone_differ_from_the_dense_copies_with_hair_hair(tmp_path):
     text = BASE.replace("collisions = true", "collisions = true\nhair_hair = true\n[hair_hair]\nresolution = 8") \
-        .replace("strands = 40", "strands = 60").replace("sequences = 4", "sequences = 2").replace("frames = 5", "frames = 8")
+        .replace("strands = 40", "strands = 60").replace("sequences = 4", "sequences = 2") \
+        .replace("frames = 5", "frames = 8")
     _, (path,), _ = make(tmp_path, text)
     with h5py.File(path, "r") as f:
         g = f["seq_000000"]
@@ -386,7 +387,8 @@ def test_cli_generates_a_suite_folder(tmp_path, capsys):
 
     suite = tmp_path / "suite"
     suite.mkdir()
-    (suite / "a.toml").write_text(BASE.replace('name = "guides"', 'name = "first"').replace("sequences = 4", "sequences = 2"))
+    (suite / "a.toml").write_text(BASE.replace('name = "guides"', 'name = "first"')
+                                  .replace("sequences = 4", "sequences = 2"))
     (suite / "b.toml").write_text('requires = ["../no_assets"]\n' + BASE.replace('name = "guides"', 'name = "second"'))
     assert main(["generate", str(suite), "--out", str(tmp_path / "out"), "--quiet"]) == 0
     text = capsys.readouterr().out

@@ -143,8 +143,8 @@ class HairSequenceDataset(torch.utils.data.Dataset):
                  dtype: torch.dtype = torch.float32, guides: Optional[int] = None, guide_source: str = "alone"):
         for name, v in (("window", 1 if window is None else window), ("stride", stride)):
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"{name} must be an integer >= 1{' (or None: whole sequences)' if name == 'window' else ''}"
-                                 f"; got {v!r}")
+                whole = " (or None: whole sequences)" if name == "window" else ""
+                raise ValueError(f"{name} must be an integer >= 1{whole}; got {v!r}")
         if guides is not None and (isinstance(guides, bool) or not isinstance(guides, int) or guides < 1):
             raise ValueError(f"guides must be an integer >= 1 (the guide count G) or None; got {guides!r}")
         self.guide_source = _check_choice(guide_source, ("alone", "dense"), "guide_source")

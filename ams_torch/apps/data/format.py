@@ -37,7 +37,8 @@ ARRAYS = {"positions": ("m", "frame,strand,particle,xyz"), "velocities": ("m/s",
           "root_triangles": ("index", "strand"), "root_barycentrics": ("1", "strand,corner"),
           "guide_indices": ("index", "guide"), "vertices": ("m", "vertex,xyz"), "faces": ("index", "face,corner"),
           "motion_velocities": ("m/s", "frame,strand,particle,xyz"), "num_pinned": ("count", "strand")}
-FRAMED = ("positions", "velocities", "guide_positions", "motion_velocities")  # large per-frame arrays: per-frame digests
+#: large per-frame arrays: per-frame digests (and the guides_alone_<G> arrays, see is_framed)
+FRAMED = ("positions", "velocities", "guide_positions", "motion_velocities")
 PER_FRAME = FRAMED + ("rotations", "translations", "linear_velocities", "angular_velocities",
                       "collider_rotations", "collider_translations")
 PER_SEQUENCE = ("rest_positions", "root_triangles", "root_barycentrics", "guide_indices", "num_pinned")

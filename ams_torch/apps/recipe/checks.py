@@ -145,8 +145,9 @@ def variants(recipe: "Recipe") -> list:
             out += [((kind,) + path, f"{key_name(sec, path)} = {v!r} ({d}, motion {kind})",
                      {"kind": kind, "margs": first(put(args, path, v))}) for v, d in options(smp)]
     wind = {k: v for k, v in raw["wind"].items() if k != "probability"} if "wind" in raw else {}
-    for section, table, arg in (("groom", raw.get("groom", {"kind": "sphere"}), "g"), ("params", raw.get("params", {}), "p"),
-                                ("wind", wind, "w"), ("colliders", raw.get("colliders", []), "c")):
+    for section, table, arg in (("groom", raw.get("groom", {"kind": "sphere"}), "g"),
+                                ("params", raw.get("params", {}), "p"), ("wind", wind, "w"),
+                                ("colliders", raw.get("colliders", []), "c")):
         for path, smp in sites(table):
             out += [((section,) + path, f"{key_name(section, path)} = {v!r} ({d})", {arg: first(put(table, path, v))})
                     for v, d in options(smp)]

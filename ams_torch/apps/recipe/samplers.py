@@ -10,7 +10,8 @@ import numpy as np
 from ams_torch.apps.scene import SceneError
 from ams_torch.apps.scene.checks import is_number
 
-__all__ = ["RecipeError", "MissingRequirement", "SAMPLERS", "is_sampler", "sample", "check_samplers", "has_sampler", "sites", "options",
+__all__ = ["RecipeError", "MissingRequirement", "SAMPLERS", "is_sampler", "sample", "check_samplers", "has_sampler",
+           "sites", "options",
            "first", "put", "key_name"]
 
 SAMPLERS = ("uniform", "log_uniform", "randint", "choice", "cycle")
