@@ -192,7 +192,7 @@ def test_layout_is_self_describing(small):
     r, path, _ = small
     with h5py.File(path, "r") as f:
         a = f.attrs
-        assert a["format"] == "ams_torch.dataset" and a["format_version"] == 2 and list(a["sequences"]) == [0, 1, 2, 3, 4]
+        assert a["format"] == "ams_torch.dataset" and a["format_version"] == 3 and list(a["sequences"]) == [0, 1, 2, 3, 4]
         assert a["recipe_digest"] == r.digest and a["num_shards"] == 1
         g = f["seq_000003"]
         assert g["positions"].shape == (6, 24, 8, 3) and g["positions"].chunks == (1, 24, 8, 3)
@@ -405,7 +405,7 @@ def test_validate_reports_corruption(tmp_path, compression, capsys):
     assert any("missing sequence" in p for p in validate_file(path))
     with h5py.File(path, "r+") as f:  # a version-1 file: refused with what to do
         f.attrs["format_version"] = 1
-    expected = f"{path}: format_version 1 is not read by this library (it reads version 2); regenerate it with " \
+    expected = f"{path}: format_version 1 is not read by this library (it reads versions 2, 3); regenerate it with " \
                f"`ams-torch generate` (its recipe is in the file's 'recipe' attribute)"
     assert validate_file(path) == [expected]
     with pytest.raises(DatasetError) as err:

@@ -8,7 +8,8 @@ import trimesh
 
 import ams_torch.grooms.presets as presets
 from ams_torch.grooms.groom import Groom, resample_strands, strand_lengths
-from ams_torch.grooms.growth import GrowthParams, grow, grow_from_roots
+from ams_torch.grooms.growth import (GrowthParams, _strand_draws, clump_labels, grow, grow_from_roots,
+                                     neighbour_distance)
 from ams_torch.grooms.presets import preset
 
 
@@ -155,6 +156,59 @@ def test_same_seed_same_groom_bit_for_bit(head, head_sdf):
     for name in ("rest_positions", "root_triangles", "root_barycentrics", "root_rest_frames"):
         assert torch.equal(getattr(a, name), getattr(b, name)), name
     assert not torch.equal(a.rest_positions, c.rest_positions)
+
+
+def test_same_seed_same_clumped_groom_and_unclumped_draws_unchanged(head, head_sdf):
+    """Clumps are a deterministic function of the roots and their draws come after the strands':
+    the same seed gives the same clumped groom bit for bit, and clump_jitter = 1 (every strand
+    keeps its own draws) gives exactly the groom without clumps."""
+    kw = dict(region="scalp", strands=300, particles=24, droop=0.3, helix_radius=300.0, phase_jitter=math.pi,
+              helix_radius_jitter=0.2, noise=0.5, length=0.12, length_jitter=0.3, sdf=head_sdf)
+    a = grow(head, seed=11, clump_radius=0.015, phase_length=0.04, **kw)
+    b = grow(head, seed=11, clump_radius=0.015, phase_length=0.04, **kw)
+    assert torch.equal(a.rest_positions, b.rest_positions) and a.metadata["clumps"] == b.metadata["clumps"] > 1
+    alone = grow(head, seed=11, **kw)
+    assert alone.metadata["clumps"] == 0 and not torch.equal(a.rest_positions, alone.rest_positions)
+    own = grow(head, seed=11, clump_radius=0.015, phase_length=0.04, clump_jitter=1.0, **kw)
+    assert torch.equal(own.rest_positions, alone.rest_positions)
+    with pytest.raises(ValueError, match="clump_jitter must be in"):
+        GrowthParams(clump_jitter=1.5)
+    with pytest.raises(ValueError, match="clump_radius must be"):
+        GrowthParams(clump_radius=-0.01)
+
+
+def test_clumps_cover_the_roots_and_members_share_their_draws():
+    rng = np.random.default_rng(0)
+    roots = rng.uniform(-0.05, 0.05, (400, 3)) * [1, 0.2, 1]
+    labels, centres = clump_labels(roots, 0.012)
+    assert len(centres) > 5 and np.array_equal(labels[centres], np.arange(len(centres)))
+    dist = np.linalg.norm(roots[:, None] - roots[centres][None], axis=-1)  # (S, C)
+    assert np.array_equal(labels, dist.argmin(1))  # each root joins its nearest centre ...
+    assert dist.min(1).max() <= 0.012  # ... and every root is within the radius of one
+    params = GrowthParams(clump_radius=0.012, clump_jitter=0.05, phase_jitter=math.pi, noise=0.4)
+    draws, lab = _strand_draws(np.random.default_rng(1), roots, params)
+    assert np.array_equal(lab, labels)
+    for c in range(len(centres)):
+        m = labels == c
+        if m.sum() > 1:  # members differ by at most w × (the full range of a strand's own draw)
+            assert np.ptp(draws["phase"][m]) <= 2 * 0.05 * math.pi + 1e-12
+            assert np.ptp(draws["noise"][m], axis=0).max() <= 2 * 0.05 * 0.4 + 1e-12
+            assert np.ptp(draws["length_u"][m]) <= 0.05 + 1e-12
+    clump_phase = np.array([draws["phase"][labels == c].mean() for c in range(len(centres))])
+    assert np.ptp(clump_phase) > math.pi  # ... while the clumps' phases span the range
+
+
+def test_clumped_wavy_and_curly_keep_neighbours_together(head, head_sdf):
+    """Strands whose roots are 8 mm apart: with independent phases (the paper's jitter) they are a
+    wave amplitude apart along their length; in the presets' clumps they run together."""
+    for name in ("wavy", "curly"):
+        clumped = preset(name, strands=800, seed=2, mesh=head, sdf=head_sdf)
+        apart = preset(name, strands=800, seed=2, mesh=head, sdf=head_sdf, clump_radius=0.0)
+        (near, pairs), (far, _) = neighbour_distance(clumped.rest_positions), neighbour_distance(apart.rest_positions)
+        assert pairs > 100
+        assert near < 0.04 and far > 0.08 and far > 2.5 * near, (name, near, far)
+    straight = preset("straight", strands=800, seed=2, mesh=head, sdf=head_sdf)
+    assert neighbour_distance(straight.rest_positions)[0] < 0.025
 
 
 def test_curliness_rises_with_helix_radius(sphere):

@@ -10,7 +10,7 @@
           DIR/final.png (a picture of it) and DIR/video.mp4; prints ms/frame per stage.
     ams-torch render FILE.h5|DATASET_DIR [--sequence K] [--out video.mp4|frame.png] [--view front|side|back]
                                   [--every k]
-    ams-torch generate RECIPE.toml --out DIR [--shard i/n | --shards n] [--backend local|ray] [--wait]
+    ams-torch generate RECIPE.toml|SUITE_FOLDER --out DIR [--shard i/n | --shards n] [--backend local|ray] [--wait]
         → DIR/<name>-shard-<i>-of-<n>.h5 (shards numbered from 0; layout: docs/dataset_format.md);
           resumes a killed run; one run per folder at a time (a lock file).
     ams-torch validate DIR|FILE [--allow-partial]
@@ -327,6 +327,20 @@ def _cmd_generate(args) -> int:
         _positive(f"--{name}", getattr(args, name))
     _positive("--cpus-per-task", args.cpus_per_task, integer=False)
     device = None if args.device is None else str(parse_device(args.device))
+    if os.path.isdir(args.recipe):  # a suite: every recipe of the folder, each into OUT/<recipe name>
+        from ams_torch.apps.datagen import generate_suite
+
+        shards, n = _generate_shards(args, None)
+        if args.threads:
+            import torch
+
+            torch.set_num_threads(args.threads)
+        t0 = time.perf_counter()
+        done = generate_suite(args.recipe, args.out, shards=shards, num_shards=n, device=device, backend=args.backend,
+                              sequences=args.sequences, progress=not args.quiet, log=lambda s: print(s, flush=True),
+                              wait=args.wait, ray_address=args.ray_address, cpus_per_task=args.cpus_per_task)
+        print(f"wrote {len(done)} dataset(s) under {args.out} in {time.perf_counter() - t0:.1f} s")
+        return 0
     recipe = load_recipe(args.recipe, {"sequences": args.sequences} if args.sequences is not None else None)
     shards, n = _generate_shards(args, recipe)
     if args.threads:
@@ -431,7 +445,7 @@ def _parser() -> argparse.ArgumentParser:
     rp.add_argument("--quiet", action="store_true")
     rp.set_defaults(fn=_cmd_render)
     gp = sub.add_parser("generate", help="simulate a dataset recipe (TOML) into sharded HDF5 files")
-    gp.add_argument("recipe")
+    gp.add_argument("recipe", help="a recipe (TOML), or a suite folder of recipes (each into OUT/<recipe name>)")
     gp.add_argument("--out", required=True, help="output folder (one HDF5 file per shard; one dataset per folder)")
     gp.add_argument("--shard", metavar="I/N", help="generate only shard I of N, numbered from 0: 0 <= I < N "
                     "(0/4 is the first of 4, 3/4 the last; file <name>-shard-0000I-of-0000N.h5); local backend")

@@ -14,6 +14,19 @@ exactly as written (``p_dir`` is not normalised between steps, as in the paper).
 per-strand helix phase, 0 unless ``phase_jitter`` is set (the paper has none, so every strand
 curls in step with the others).
 
+Clumps. Real hair curls and waves in clumps: neighbouring strands run together. With
+``clump_radius`` r > 0 the roots are split into clumps by proximity (:func:`clump_labels`:
+clump centres are roots taken in farthest-point order until every root lies within r of one;
+each root joins its nearest centre), and every per-strand random draw (helix phase, helix-radius
+jitter, the noise of p_dir⁰, the length jitter) becomes ``(1 − w) × its clump's draw + w × its
+own`` with w = ``clump_jitter``: members of a clump share phase and wave/curl shape up to a
+small per-strand jitter. r = 0 (the default) leaves every strand on its own, as in the paper.
+Neighbouring clumps are not independent either when ``phase_length`` ℓ > 0: the clumps' phases
+are a smooth random field over the roots, φ_c = (phase_jitter/π) arg Σ_d exp(−|c_c − c_d|²/2ℓ²)
+e^{iθ_d} over the clump centres c_d with θ_d ~ U(−π, π) (the argument of a sum of random
+phasors is uniform, so each φ_c is still uniform in ±phase_jitter), so waves stay coherent over
+about ℓ and drift apart beyond it, while clumps stay visible as clumps.
+
 Parameters (keyword names; the paper's symbols are accepted as aliases, see ``ALIASES``):
 
 ========================  ===========  ========  =================================================
@@ -32,6 +45,9 @@ name                      paper        default   meaning
 ``helix_radius_jitter``   —            0.0       p_h · (1 + U(−j, j)) per strand
 ``length``                —            None      strand length(s) in metres, see below
 ``length_jitter``         —            0.0       lengths · (1 − U(0, j)) per strand
+``clump_radius``          —            0.0       m; clumps of roots within this radius share draws
+``clump_jitter``          —            0.05      share w of a clumped strand's own draws, in [0, 1]
+``phase_length``          —            0.0       m; correlation length of the clumps' phases (with clumps)
 ``steps``                 —            None      K; default N − 1, or enough for ``length``
 ``collide``               —            True      keep grown points out of the mesh (SDF)
 ``margin``                —            0.002     clearance kept from the mesh when colliding, m
@@ -66,8 +82,9 @@ each root picks a triangle with probability proportional to its area, then a uni
 on it — the same distribution as p_n per unit area, with an exact strand count.
 
 Determinism: every random number comes from one ``numpy.random.Generator(PCG64(seed))`` drawn
-in a fixed order, and the growth runs in float64 on the CPU, so a seed gives the same groom
-bit for bit.
+in a fixed order (the clumps' draws after the strands', so an unclumped groom is the same as
+before clumps existed), the clumps are a deterministic function of the roots, and the growth
+runs in float64 on the CPU, so a seed gives the same groom bit for bit.
 """
 from __future__ import annotations
 
@@ -80,7 +97,8 @@ import torch
 
 from ams_torch.grooms.groom import Groom, resample_strands, triangle_frames
 
-__all__ = ["GrowthParams", "ALIASES", "grow", "grow_from_roots", "sample_roots"]
+__all__ = ["GrowthParams", "ALIASES", "grow", "grow_from_roots", "sample_roots", "clump_labels",
+           "neighbour_distance"]
 
 
 @dataclass(frozen=True)
@@ -104,6 +122,9 @@ class GrowthParams:
     helix_radius_jitter: float = 0.0
     length: Any = None
     length_jitter: float = 0.0
+    clump_radius: float = 0.0
+    clump_jitter: float = 0.05
+    phase_length: float = 0.0
     steps: Optional[int] = None
     collide: bool = True
     margin: float = 0.002
@@ -118,6 +139,14 @@ class GrowthParams:
             raise ValueError(f"root_min_cos must be in [−1, 1), got {self.root_min_cos}")
         if self.margin < 0:
             raise ValueError(f"margin must be ≥ 0, got {self.margin}")
+        if not (isinstance(self.clump_radius, (int, float)) and math.isfinite(self.clump_radius)
+                and self.clump_radius >= 0):
+            raise ValueError(f"clump_radius must be a finite number ≥ 0 (m), got {self.clump_radius!r}")
+        if not (isinstance(self.clump_jitter, (int, float)) and 0.0 <= self.clump_jitter <= 1.0):
+            raise ValueError(f"clump_jitter must be in [0, 1], got {self.clump_jitter!r}")
+        if not (isinstance(self.phase_length, (int, float)) and math.isfinite(self.phase_length)
+                and self.phase_length >= 0):
+            raise ValueError(f"phase_length must be a finite number ≥ 0 (m), got {self.phase_length!r}")
 
     @staticmethod
     def make(**kwargs) -> "GrowthParams":
@@ -226,6 +255,62 @@ def sample_roots(mesh, region="scalp", strands: Optional[int] = None, per_triang
     nrm = np.einsum("sk,skd->sd", bary, vn[fv])
     nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-30)
     return dict(triangles=tri, barycentrics=bary, face_vertices=fv, positions=pos, normals=nrm)
+
+
+def clump_labels(roots, radius: float):
+    """Clumps of roots by proximity.
+
+    Clump centres are roots taken in farthest-point order (starting at the root nearest the
+    centroid; ties to the lowest index) until every root lies within ``radius`` of a centre;
+    each root joins its nearest centre (ties to the earlier centre). Deterministic.
+
+    Args:
+        roots: (S, 3) metres.
+        radius: r > 0, metres: the largest root–centre distance of a clump.
+    Returns:
+        ``(labels (S,) int64 in [0, C), centres (C,) int64 root indices)``; ``labels[centres[c]] == c``.
+    """
+    r = np.asarray(roots, dtype=np.float64).reshape(-1, 3)
+    if not radius > 0:
+        raise ValueError(f"clump radius must be positive (m), got {radius!r}")
+    if len(r) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    centres = [int(np.argmin(((r - r.mean(0)) ** 2).sum(1)))]
+    dist = ((r - r[centres[0]]) ** 2).sum(1)
+    labels = np.zeros(len(r), np.int64)
+    r2 = float(radius) ** 2
+    while True:
+        far = int(np.argmax(dist))
+        if dist[far] <= r2:
+            break
+        d = ((r - r[far]) ** 2).sum(1)
+        closer = d < dist
+        labels[closer] = len(centres)
+        dist = np.where(closer, d, dist)
+        centres.append(far)
+    return labels, np.asarray(centres, np.int64)
+
+
+def neighbour_distance(positions, root_distance: float = 0.008, tolerance: float = 0.001) -> tuple:
+    """How far apart strands whose roots are close stay along their length.
+
+    positions: (S, N, 3) metres (particle 0 the root). For every pair of strands whose roots are
+    ``root_distance`` ± ``tolerance`` metres apart, the distance between their particles of the
+    same index, averaged over the N particles; returns ``(mean over the pairs (m), pair count)``
+    (``(nan, 0)`` when no pair qualifies). Straight combed hair keeps neighbours close (≈ the
+    root distance plus the spread of root directions and lengths); strands whose waves are out
+    of phase are a wave amplitude apart.
+    """
+    x = np.asarray(positions.detach().cpu() if hasattr(positions, "detach") else positions, dtype=np.float64)
+    roots = x[:, 0]
+    total, count = 0.0, 0
+    for i in range(len(x) - 1):  # row by row: O(S) memory for any S
+        d = np.linalg.norm(roots[i + 1:] - roots[i], axis=1)
+        j = i + 1 + np.flatnonzero(np.abs(d - root_distance) <= tolerance)
+        if j.size:
+            total += float(np.linalg.norm(x[j] - x[i], axis=-1).mean(1).sum())
+            count += int(j.size)
+    return (total / count if count else float("nan")), count
 
 
 # --------------------------------------------------------------------------------------------
@@ -383,6 +468,40 @@ def _resolve_lengths(length, roots: np.ndarray, normals: np.ndarray) -> Optional
     return out
 
 
+def _smooth_phase(theta: np.ndarray, centres: np.ndarray, length: float) -> np.ndarray:
+    """arg Σ_d exp(−|c − c_d|²/(2 length²)) e^{iθ_d} at every centre c: (C,) angles in (−π, π]."""
+    z = np.exp(1j * theta)
+    out = np.empty(len(theta))
+    for a in range(0, len(theta), 1024):  # rows in blocks: O(1024 C) memory
+        d2 = ((centres[a:a + 1024, None] - centres[None]) ** 2).sum(-1)
+        out[a:a + 1024] = np.angle(np.exp(-d2 / (2.0 * length * length)) @ z)
+    return out
+
+
+def _strand_draws(rng: np.random.Generator, roots: np.ndarray, params: GrowthParams) -> tuple:
+    """The per-strand random draws of :func:`grow`, in their fixed order: ``noise`` (S, 3) (scaled
+    by ``params.noise``), ``phase`` (S,) radians, ``radius_u`` (S,) in [−1, 1], ``length_u`` (S,)
+    in [0, 1). With ``clump_radius`` > 0 the clumps' draws follow (same kinds, (C, ...)) and each
+    strand's draw becomes (1 − w) × its clump's + w × its own (w = ``clump_jitter``).
+    Returns ``(draws, clumps)`` with ``clumps`` the (S,) clump labels, or None."""
+    s = len(roots)
+    draws = {"noise": rng.uniform(-1.0, 1.0, (s, 3)) * params.noise,
+             "phase": rng.uniform(-1.0, 1.0, s) * params.phase_jitter,
+             "radius_u": rng.uniform(-1.0, 1.0, s), "length_u": rng.random(s)}
+    if not params.clump_radius > 0:
+        return draws, None
+    labels, centres = clump_labels(roots, params.clump_radius)
+    c = len(centres)
+    shared = {"noise": rng.uniform(-1.0, 1.0, (c, 3)) * params.noise,
+              "phase": rng.uniform(-1.0, 1.0, c) * params.phase_jitter,
+              "radius_u": rng.uniform(-1.0, 1.0, c), "length_u": rng.random(c)}
+    if params.phase_length > 0 and params.phase_jitter > 0:
+        shared["phase"] = _smooth_phase(shared["phase"] * (math.pi / params.phase_jitter), roots[centres],
+                                        params.phase_length) * (params.phase_jitter / math.pi)
+    w = float(params.clump_jitter)
+    return {k: (1.0 - w) * shared[k][labels] + w * v for k, v in draws.items()}, labels
+
+
 def grow(mesh, region="scalp", strands: Optional[int] = None, particles: int = 32, seed: int = 0, *,
          per_triangle: Optional[int] = None, sdf=None, **growth_params) -> Groom:
     """Grow a groom on a mesh region with the procedural scheme of SPEC §9.
@@ -416,10 +535,9 @@ def grow(mesh, region="scalp", strands: Optional[int] = None, particles: int = 3
     rng = np.random.default_rng(seed)
     root = sample_roots(mesh, region, strands=strands, per_triangle=per_triangle, rng=rng)
     s = root["positions"].shape[0]
-    noise = rng.uniform(-1.0, 1.0, (s, 3)) * params.noise
-    phase = rng.uniform(-1.0, 1.0, s) * params.phase_jitter
-    radius = params.helix_radius * (1.0 + rng.uniform(-1.0, 1.0, s) * params.helix_radius_jitter)
-    length_u = rng.random(s)
+    draws, clumps = _strand_draws(rng, root["positions"], params)
+    noise, phase, length_u = draws["noise"], draws["phase"], draws["length_u"]
+    radius = params.helix_radius * (1.0 + draws["radius_u"] * params.helix_radius_jitter)
     if params.comb is not None:
         comb = params.comb(root["positions"], root["normals"]) if callable(params.comb) else params.comb
         noise = noise + np.broadcast_to(np.asarray(comb, dtype=np.float64), (s, 3))
@@ -457,6 +575,7 @@ def grow(mesh, region="scalp", strands: Optional[int] = None, particles: int = 3
         particles=particles,
         per_triangle=None if per_triangle is None else int(per_triangle),
         growth_steps=k_steps,
+        clumps=0 if clumps is None else int(clumps.max()) + 1,
         params={k: _describe(v) for k, v in asdict(params).items()},
         mesh=str(getattr(mesh, "metadata", {}).get("name", "")),
     )

@@ -44,15 +44,21 @@ def _bob_length(short: float, long: float, width: float = 0.03):
     return length
 
 
+#: The clumps of the wavy and curly presets (see :mod:`ams_torch.grooms.growth`): clumps of roots
+#: within 15 mm share phase and shape (5 % per-strand jitter), the clumps' phases vary over ~4 cm.
+#: Strands whose roots are 8 mm apart stay ~27 mm apart along their length instead of ~105 mm
+#: (``scripts/clump_study.py``); override with ``clump_radius=0`` for independent strands.
+_CLUMPS = dict(clump_radius=0.015, clump_jitter=0.05, phase_length=0.04)
+
 _PRESET_PARAMS: Dict[str, Dict[str, Any]] = {
     "straight": dict(region="scalp", particles=32, params=dict(
         step=0.005, droop=0.3, noise=0.15, length=0.36, length_jitter=0.12, comb=_parted_comb(1.2, back=2.0))),
     "wavy": dict(region="scalp", particles=48, params=dict(
         step=0.005, droop=2.0, helix_radius=3000.0, helix_freq=0.5, noise=0.15, phase_jitter=math.pi,
-        helix_radius_jitter=0.2, length=0.32, length_jitter=0.12, comb=_parted_comb(1.2, back=2.0))),
+        helix_radius_jitter=0.2, length=0.32, length_jitter=0.12, comb=_parted_comb(1.2, back=2.0), **_CLUMPS)),
     "curly": dict(region="scalp", particles=64, params=dict(
         step=0.006, droop=0.2, helix_radius=600.0, helix_freq=0.6, noise=0.2, phase_jitter=math.pi,
-        helix_radius_jitter=0.2, length=0.26, length_jitter=0.15)),
+        helix_radius_jitter=0.2, length=0.26, length_jitter=0.15, **_CLUMPS)),
     "bob": dict(region="scalp", particles=32, params=dict(
         step=0.004, droop=0.3, noise=0.15, length=_bob_length(0.09, 0.21), length_jitter=0.05,
         comb=_parted_comb(1.2, part_x=0.025, back=2.0))),
@@ -155,8 +161,8 @@ def preset(name: str, strands: int = 5000, particles: Optional[int] = None, seed
     Names (see ``PRESETS``):
 
     * ``straight``: long (0.36 m) straight hair parted in the middle, hanging to the shoulders.
-    * ``wavy``: long (0.32 m) wavy hair (p_h = 3000, p_freq = 0.5, p_γ = 2).
-    * ``curly``: 0.26 m curls (p_h = 600, p_freq = 0.6), voluminous.
+    * ``wavy``: long (0.32 m) wavy hair (p_h = 3000, p_freq = 0.5, p_γ = 2), in clumps (below).
+    * ``curly``: 0.26 m curls (p_h = 600, p_freq = 0.6), voluminous, in clumps.
     * ``bob``: asymmetric bob, 0.21 m on the +x side, 0.09 m on the −x side, shorter fringe.
     * ``ponytail``: strands pulled over the scalp to a tie at the back and gathered along a
       guide curve (a 0.24 m tail that fans out).
@@ -173,6 +179,10 @@ def preset(name: str, strands: int = 5000, particles: Optional[int] = None, seed
         sdf: collision ``SDFGrid`` of ``mesh`` to reuse.
         **overrides: growth parameters replacing the preset's (not for ``ponytail``, which
             takes ``tail_length``, ``tie_radius``, ``spread``, ``margin``).
+
+    Clumps: ``wavy`` and ``curly`` grow in clumps (``clump_radius`` 15 mm, ``clump_jitter`` 0.05,
+    ``phase_length`` 4 cm): strands of a clump share wave phase and shape, so neighbours run
+    together as in real hair. Pass ``clump_radius=0`` for the paper's independent strands.
 
     Returns:
         :class:`Groom` with ``rest_positions`` (S, N, 3) float32 metres in the head frame;

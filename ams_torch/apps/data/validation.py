@@ -10,9 +10,9 @@ from typing import Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from ams_torch.apps.data.format import (FRAME_DIGESTS, FRAMED, PER_FRAME, POSE_FIELDS, SEQ_PREFIX, SPLITS, DatasetError,
-                                        check_together, list_files, lock_holder, open_dataset, read_header,
-                                        sequence_checksum, sequence_name)
+from ams_torch.apps.data.format import (FRAME_DIGESTS, PER_FRAME, POSE_FIELDS, SEQ_PREFIX, SPLITS, DatasetError,
+                                        alone_count, alone_name, check_together, is_framed, list_files, lock_holder,
+                                        open_dataset, read_header, sequence_checksum, sequence_name)
 
 __all__ = ["validate_file", "validate", "ValidationReport"]
 
@@ -26,14 +26,26 @@ def _expected_shapes(g, frames: int) -> Dict[str, tuple]:
             "rotations": (frames, 3, 3), "translations": (frames, 3), "linear_velocities": (frames, 3),
             "angular_velocities": (frames, 3), "collider_rotations": (frames, cols, 3, 3),
             "collider_translations": (frames, cols, 3), "root_triangles": (s,), "root_barycentrics": (s, 3),
-            "guide_indices": (guides,)}
+            "guide_indices": (guides,), "motion_velocities": (frames, s, n, 3), "num_pinned": (s,),
+            **{k: (frames, alone_count(k), n, 3) for k in g.keys() if alone_count(k) is not None}}
+
+
+def _store_counts(store: dict) -> List[int]:
+    g = store.get("guides", 0)
+    return sorted(int(x) for x in g) if isinstance(g, list) else ([int(g)] if g else [])
 
 
 def _required(store: dict) -> List[str]:
     req = ["rest_positions"] + [k for k, on in (("positions", store.get("positions", True)),
-                                                ("velocities", store.get("velocities", False))) if on]
-    if store.get("guides", 0):
+                                                ("velocities", store.get("velocities", False)),
+                                                ("motion_velocities", store.get("motion_velocities", False))) if on]
+    counts = _store_counts(store)
+    if counts:
         req += ["guide_indices", "guide_positions"]
+    if store.get("guides_alone", False):  # format 3 (format 2 stores have no such key)
+        req += [alone_name(c) for c in counts]
+    if "guides_alone" in store:  # format 3: the pinned prefix of every strand
+        req.append("num_pinned")
     return req + (list(POSE_FIELDS) if store.get("poses", True) else [])
 
 
@@ -41,7 +53,7 @@ def _check_array(g, name: str, key: str) -> Tuple[List[str], Optional[tuple]]:
     """Read one array slab by slab: (problems, checksum entry)."""
     d, problems, bad = g[key], [], 0
     h = hashlib.sha256()
-    framed = key in FRAMED and FRAME_DIGESTS in g and key in g[FRAME_DIGESTS]
+    framed = is_framed(key) and FRAME_DIGESTS in g and key in g[FRAME_DIGESTS]
     stored_frames = g[FRAME_DIGESTS][key][()] if framed else None
     try:
         for k in range(d.shape[0]) if framed else [None]:
@@ -74,7 +86,7 @@ def _check_sequence(g, name: str, frames: int, store: dict) -> List[str]:
         d = g[key]
         if key in expect and d.shape != expect[key]:
             problems.append(f"{name}/{key}: " + (f"{d.shape[0] if d.ndim else 0} frames, expected {frames}"
-                                                 if key in PER_FRAME and d.shape[:1] != (frames,)
+                                                 if (key in PER_FRAME or is_framed(key)) and d.shape[:1] != (frames,)
                                                  else f"shape {d.shape}, expected {expect[key]}"))
             continue
         found, entry = _check_array(g, name, key)

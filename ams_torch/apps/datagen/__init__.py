@@ -20,11 +20,17 @@ another recipe or another shard count is refused.
 
 Backends: :func:`generate` (this process, one or several shards one after the other) and
 :func:`generate_ray` (one Ray task per batch group, one GPU each where the cluster has GPUs).
+
+Guides alone: for each count of ``[store].guides`` the batch group also simulates those guide
+strands alone (:func:`guide_simulators`) in the same frame loop. Suites: :func:`generate_suite`
+generates a folder of recipes, each into its own dataset folder.
 """
 from ams_torch.apps.datagen.ray_backend import generate_ray, start_local_ray
 from ams_torch.apps.datagen.shards import (LOCK_FILE, OutputError, generate, generate_shard, lock_holder, output_lock,
                                            parse_shard, shard_filename)
-from ams_torch.apps.datagen.simulate import nonfinite_inputs, simulate_group
+from ams_torch.apps.datagen.simulate import guide_order, guide_simulators, nonfinite_inputs, simulate_group
+from ams_torch.apps.datagen.suite import generate_suite, suite_recipes
 
 __all__ = ["shard_filename", "simulate_group", "generate_shard", "generate", "generate_ray", "start_local_ray",
-           "parse_shard", "output_lock", "lock_holder", "OutputError", "LOCK_FILE", "nonfinite_inputs"]
+           "parse_shard", "output_lock", "lock_holder", "OutputError", "LOCK_FILE", "nonfinite_inputs",
+           "guide_order", "guide_simulators", "generate_suite", "suite_recipes"]

@@ -7,7 +7,8 @@ from typing import Callable, List, Optional
 
 import torch
 
-from ams_torch.apps.datagen.shards import check_output, check_sharding, finish_shard, output_lock, prepare_shard
+from ams_torch.apps.datagen.shards import (check_output, check_sharding, finish_shard, log_plan, output_lock,
+                                           prepare_shard)
 from ams_torch.apps.datagen.writer import write_group
 from ams_torch.apps.recipe import Recipe
 
@@ -115,6 +116,7 @@ def generate_ray(recipe: Recipe, out: str, num_shards: int, address: Optional[st
         total = sum(len(p["groups"]) for p in plans)
         if len(todo) < total:
             log(f"resuming: {total - len(todo)} of {total} batch groups already done")
+        log_plan(recipe, log)
         if todo:
             _run_ray(ray, recipe, todo, total, total - len(todo), address, device, cpus_per_task, progress, log,
                      on_group)

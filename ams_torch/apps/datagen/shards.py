@@ -18,7 +18,7 @@ from ams_torch.apps.datagen.writer import _json, write_group, atomic_write, copy
 from ams_torch.apps.recipe import Recipe
 
 __all__ = ["shard_filename", "parse_shard", "output_lock", "lock_holder", "OutputError", "LOCK_FILE",
-           "generate_shard", "generate", "check_sharding", "check_output", "prepare_shard", "finish_shard"]
+           "generate_shard", "generate", "check_sharding", "check_output", "prepare_shard", "finish_shard", "log_plan"]
 
 
 
@@ -57,6 +57,13 @@ def _group_done(path: str, recipe: Recipe) -> bool:
             return bool(f.attrs.get("complete", False))
     except OSError:
         return False
+
+
+def log_plan(recipe: Recipe, log: Callable[[str], None]) -> None:
+    """Say how many grooms the recipe grows and how its sequences split, before simulating."""
+    from ams_torch.apps.recipe.splits import describe
+
+    log(f"{recipe.name}: {recipe.groom_note()}; {describe(recipe)}")
 
 
 # -- the output folder: one run at a time, one dataset per folder ---------------------------------
@@ -216,5 +223,6 @@ def generate(recipe: Recipe, out: str, shards: Optional[Sequence[int]] = None, n
     shards = check_sharding(recipe, num_shards, shards)
     with output_lock(out, wait, log):
         check_output(recipe, out, num_shards)
+        log_plan(recipe, log)
         return [generate_shard(recipe, out, i, num_shards, device=device, progress=progress, log=log, lock=False)
                 for i in shards]

@@ -11,9 +11,10 @@ import numpy as np
 import torch
 
 from ams_torch import __version__
-from ams_torch.apps.data import (ARRAYS, FORMAT, FORMAT_VERSION, FRAME_DIGESTS, POSE_FIELDS, SPLITS, array_digest,
+from ams_torch.apps.data import (FORMAT, FORMAT_VERSION, FRAME_DIGESTS, POSE_FIELDS, SPLITS, array_digest,
                                  sequence_checksum, sequence_name)
-from ams_torch.apps.datagen.simulate import simulate_group
+from ams_torch.apps.data.format import alone_name, array_info
+from ams_torch.apps.datagen.simulate import guide_order, simulate_group
 from ams_torch.apps.recipe import Recipe
 
 __all__ = ["write_group", "copy_groups", "atomic_write"]
@@ -26,7 +27,7 @@ def _json(v) -> str:
 
 def _labelled(d, name: str, digest: Optional[str] = None) -> None:
     """The ``units``, ``dims`` (and ``sha256``) attributes of a stored array."""
-    d.attrs["units"], d.attrs["dims"] = ARRAYS[name]
+    d.attrs["units"], d.attrs["dims"] = array_info(name)
     if digest is not None:
         d.attrs["sha256"] = digest
 
@@ -44,9 +45,13 @@ class _SequenceWriter:
             "compression": st["compression"], "shuffle": True,
             **({"compression_opts": st["compression_level"]} if st["compression"] == "gzip" else {})}
         shapes = {"positions": (strands, particles, 3), "velocities": (strands, particles, 3),
-                  "guide_positions": (0 if guide_idx is None else len(guide_idx), particles, 3)}
+                  "motion_velocities": (strands, particles, 3),
+                  "guide_positions": (0 if guide_idx is None else len(guide_idx), particles, 3),
+                  **{alone_name(g): (g, particles, 3) for g in recipe.alone_counts}}
         self.framed = [k for k, on in (("positions", st["positions"]), ("velocities", st["velocities"]),
+                                       ("motion_velocities", st["motion_velocities"]),
                                        ("guide_positions", guide_idx is not None)) if on]
+        self.framed += [alone_name(g) for g in recipe.alone_counts]
         f = recipe.frames
         for name in self.framed:
             d = self.g.create_dataset(name, shape=(f,) + shapes[name], dtype=self.prec, chunks=(1,) + shapes[name],
@@ -59,17 +64,29 @@ class _SequenceWriter:
             small.update(collider_rotations=(f, colliders, 3, 3), collider_translations=(f, colliders, 3))
         self.small = {k: np.zeros(shape, np.float32) for k, shape in small.items()}
 
-    def frame(self, k: int, x: np.ndarray, v: Optional[np.ndarray], small: dict) -> None:
+    def frame(self, k: int, x: np.ndarray, v: Optional[np.ndarray], small: dict,
+              motion_v: Optional[np.ndarray] = None) -> None:
         """x, v: (S, N, 3) float32 (m, m/s); small: this frame's head pose (rotation (3, 3),
-        translation (3,), velocities (3,)) and collider poses ((C, 3, 3), (C, 3))."""
-        arrays = {"positions": x, "velocities": v, "guide_positions": None if self.guides is None else x[self.guides]}
+        translation (3,), velocities (3,)) and collider poses ((C, 3, 3), (C, 3)); motion_v:
+        (S, N, 3) m/s, the velocity the positions imply over frame k (stored when asked)."""
+        arrays = {"positions": x, "velocities": v, "motion_velocities": motion_v,
+                  "guide_positions": None if self.guides is None else x[self.guides]}
         for name in self.framed:
-            a = np.ascontiguousarray(arrays[name].astype(self.prec))
-            self.g[name][k] = a
-            self.hashers[name].update(a.tobytes())
-            self.frame_digests[name][k] = np.frombuffer(hashlib.sha256(a.tobytes()).digest(), np.uint8)
+            if name in arrays:
+                self._put(name, k, arrays[name])
         for name, buf in self.small.items():
             buf[k] = small[name]
+
+    def guides_frame(self, k: int, alone: dict) -> None:
+        """alone: {G: (G, N, 3) float32 m}, frame k of the first G guides simulated alone."""
+        for g, x in alone.items():
+            self._put(alone_name(g), k, x)
+
+    def _put(self, name: str, k: int, array: np.ndarray) -> None:
+        a = np.ascontiguousarray(array.astype(self.prec))
+        self.g[name][k] = a
+        self.hashers[name].update(a.tobytes())
+        self.frame_digests[name][k] = np.frombuffer(hashlib.sha256(a.tobytes()).digest(), np.uint8)
 
     def static(self, name: str, array: np.ndarray) -> None:
         a = np.ascontiguousarray(array)
@@ -166,22 +183,33 @@ def _write_group_file(recipe: Recipe, group: int, tmp: str, device=None) -> floa
     """Simulate batch group ``group`` into the HDF5 file ``tmp``. Returns ms/frame."""
     import h5py
 
-    from ams_torch.grooms.groom import fps_order
-
     writers: List[_SequenceWriter] = []
-    guides, keep_v = recipe.store["guides"], recipe.store["velocities"]
+    guides, keep_v = max(recipe.guide_counts, default=0), recipe.store["velocities"]
+    keep_mv = recipe.store["motion_velocities"]
     holder = {}
     with h5py.File(tmp, "w") as h5:
         def on_start(run, specs):
             holder["run"] = run
             rest = run.sim.model.rest_positions
-            gidx = fps_order(rest[:, 0].cpu(), guides).numpy() if guides else None
+            gidx = guide_order(run, guides) if guides else None
             writers.extend(_SequenceWriter(h5, recipe, spec, rest.shape[0], rest.shape[1], gidx,
                                            len(run.scene["colliders"])) for spec in specs)
+
+        def on_initial(state):
+            holder["x"] = state.x.detach().clone()
+
+        def on_guides(k, states):
+            xs = {g: st.x.detach().to("cpu", torch.float32).numpy() for g, st in states.items()}
+            for b, w in enumerate(writers):
+                w.guides_frame(k, {g: x[b] for g, x in xs.items()})
 
         def on_frame(k, state):
             x = state.x.detach().to("cpu", torch.float32).numpy()
             v = state.v.detach().to("cpu", torch.float32).numpy() if keep_v else None
+            mv = None
+            if keep_mv:  # backward difference over frame k, in the simulation's precision: (x_k − x_{k−1}) / dt
+                mv = ((state.x.detach() - holder["x"]) / holder["run"].sim.params.dt).to("cpu", torch.float32).numpy()
+                holder["x"] = state.x.detach().clone()
             p = state.pose
             small = {"rotations": p.rotation, "translations": p.translation, "linear_velocities": p.linear_velocity,
                      "angular_velocities": p.angular_velocity}
@@ -190,9 +218,11 @@ def _write_group_file(recipe: Recipe, group: int, tmp: str, device=None) -> floa
                 small["collider_rotations"], small["collider_translations"] = \
                     _collider_poses(holder["run"], (k + 1) * holder["run"].sim.params.dt, p)
             for b, w in enumerate(writers):
-                w.frame(k, x[b], None if v is None else v[b], {n: a[b] for n, a in small.items()})
+                w.frame(k, x[b], None if v is None else v[b], {n: a[b] for n, a in small.items()},
+                        None if mv is None else mv[b])
 
-        out = simulate_group(recipe, group, device=device, on_frame=on_frame, on_start=on_start)
+        out = simulate_group(recipe, group, device=device, on_frame=on_frame, on_start=on_start, on_guides=on_guides,
+                             on_initial=on_initial)
         run = out["run"]
         rest = run.sim.model.rest_positions.detach().cpu().float().numpy()
         for w, spec in zip(writers, out["specs"]):
@@ -202,7 +232,10 @@ def _write_group_file(recipe: Recipe, group: int, tmp: str, device=None) -> floa
                 w.static("root_barycentrics", run.groom.root_barycentrics.numpy().astype(np.float32))
             if w.guides is not None:
                 w.static("guide_indices", np.asarray(w.guides, dtype=np.int64))
+            w.static("num_pinned", run.sim.model.num_pinned.detach().cpu().numpy().astype(np.int64))
             w.finish({"index": spec["index"], "group": group, "split": recipe.sequence_split(spec["index"]),
+                      "holdout": _json(recipe.sequence_holdout(spec["index"])), "motion_type": spec["motion_type"],
+                      "guides_alone": np.asarray(recipe.alone_counts, dtype=np.int64),
                       "seed": spec["seed"], "frames": recipe.frames, "dt": float(run.sim.params.dt),
                       "strands": rest.shape[0], "particles": rest.shape[1], "motion": _json(spec["motion"]),
                       "wind": _json(spec["wind"]), "groom": _json(out["group"]["groom"]),
@@ -238,13 +271,21 @@ def copy_groups(recipe: Recipe, parts: List[str], tmp: str, shard: int, num_shar
                     indices.append(int(src[name].attrs["index"]))
                 if j == 0:
                     src.copy(src["scene"], dst, name="scene")
+                    if recipe.colliders_vary and "scene/colliders" in dst:
+                        del dst["scene/colliders"]  # each batch group has its own: scene/groups/<g>/colliders
+                if recipe.colliders_vary:
+                    dst["scene"].attrs["colliders_by_group"] = True
+                    g = int(src.attrs["group"])
+                    dst.require_group(f"scene/groups/{g:06d}")
+                    if "scene/colliders" in src:
+                        src.copy(src["scene/colliders"], dst[f"scene/groups/{g:06d}"], name="colliders")
         indices.sort()
         for split in SPLITS:
             dst.create_dataset(f"mask/{split}", data=np.array([recipe.sequence_split(i) == split for i in indices], bool))
         dst.attrs.update(format=FORMAT, format_version=FORMAT_VERSION, library_version=__version__,
                          torch_version=str(torch.__version__), recipe_name=recipe.name, recipe=recipe.to_json(),
                          recipe_hash=recipe.hash, recipe_digest=recipe.digest, store=_json(recipe.store),
-                         split=_json(recipe.split_ratios), shard=shard, num_shards=num_shards,
+                         split=_json(recipe.split_rules), shard=shard, num_shards=num_shards,
                          num_sequences=recipe.num_sequences, batch=recipe.batch, frames=recipe.frames,
                          sequences=np.asarray(indices, dtype=np.int64))
 

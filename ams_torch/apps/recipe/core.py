@@ -5,7 +5,6 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
-import math
 import os
 from dataclasses import dataclass
 from typing import Any, Dict, List, Optional
@@ -13,14 +12,14 @@ from typing import Any, Dict, List, Optional
 import numpy as np
 
 from ams_torch.apps.recipe.checks import (SPLIT_DEFAULTS, SPLITS, STORE_DEFAULTS, check_sampler_values, check_top,
-                                          motion_common, motion_types)
-from ams_torch.apps.recipe.samplers import RecipeError, _fail, sample
+                                          guide_counts, motion_common, motion_types)
+from ams_torch.apps.recipe.samplers import MissingRequirement, RecipeError, _fail, has_sampler, sample
 from ams_torch.apps.scene import SceneError, parse_scene, read_toml
 from ams_torch.apps.scene.checks import is_number
 
 __all__ = ["Recipe", "load_recipe", "parse_recipe"]
 
-_NOT_HASHED = ("name", "description", "sequences", "store", "split")
+_NOT_HASHED = ("name", "description", "sequences", "store", "split", "single_groom", "requires")
 _RANDOM_MOTION = {"keys": 4, "duration": None, "max_angle": 0.6, "max_translation": 0.05}
 _GROUP, _SEQUENCE, _SPLIT = 0, 1, 2
 
@@ -101,6 +100,40 @@ class Recipe:
         return {**STORE_DEFAULTS, **self.raw.get("store", {})}
 
     @property
+    def guide_counts(self) -> List[int]:
+        """The guide counts G of ``[store].guides``, sorted (``guides = [64, 256]`` -> [64, 256]); the
+        stored guide order holds the largest; each count is also simulated alone when
+        ``[store].guides_alone`` (the default)."""
+        return guide_counts(self.store)
+
+    @property
+    def alone_counts(self) -> List[int]:
+        """The guide counts simulated alone (none when ``[store].guides_alone = false``)."""
+        return self.guide_counts if self.store["guides_alone"] else []
+
+    @property
+    def colliders_vary(self) -> bool:
+        """Whether ``[[colliders]]`` holds samplers (each batch group draws its own colliders)."""
+        return has_sampler(self.raw.get("colliders", []))
+
+    @property
+    def groom_varies(self) -> bool:
+        """Whether the batch groups can have different grooms: ``[groom]`` holds samplers, or a
+        preset groom without ``seed`` (each group then draws its own seed)."""
+        groom = self.raw.get("groom", {"kind": "sphere"})
+        return has_sampler(groom) or ("preset" in groom and "seed" not in groom)
+
+    def groom_note(self) -> str:
+        """One line saying how many grooms the batch groups grow, and why."""
+        if not self.groom_varies:
+            return f"grooms: one groom for all {self.num_groups} batch group(s)"
+        why = ("[groom].seed is not set, so each batch group draws its own seed"
+               if "seed" not in self.raw.get("groom", {}) and not has_sampler(self.raw.get("groom", {}))
+               else "[groom] holds samplers, drawn per batch group")
+        distinct = len({_canonical(self.group_spec(g)["groom"]) for g in range(self.num_groups)})
+        return f"grooms: {distinct} different groom(s) in {self.num_groups} batch group(s) ({why})"
+
+    @property
     def dtype_name(self) -> str:
         return self.raw.get("dtype", "float32")
 
@@ -112,33 +145,38 @@ class Recipe:
 
     @property
     def split_ratios(self) -> Dict[str, float]:
-        return {**SPLIT_DEFAULTS, **self.raw.get("split", {})}
+        """The shares ``{"train", "valid", "test"}`` of ``[split]``."""
+        given = self.raw.get("split", {})
+        return {k: float(given.get(k, SPLIT_DEFAULTS[k])) for k in SPLITS}
+
+    @property
+    def split_rules(self) -> Dict[str, Any]:
+        """The whole ``[split]``: shares, ``by`` and ``hold_out`` (see :mod:`ams_torch.apps.recipe.splits`)."""
+        given = self.raw.get("split", {})
+        return {**self.split_ratios, "by": given.get("by", "group"), "hold_out": given.get("hold_out", {})}
+
+    def _splits(self) -> tuple:
+        cached = self.__dict__.get("_split_cache")
+        if cached is None:
+            from ams_torch.apps.recipe.splits import compute_splits
+
+            cached = self.__dict__["_split_cache"] = compute_splits(self)
+        return cached
 
     def group_splits(self) -> List[str]:
-        """The split (``"train"``, ``"valid"`` or ``"test"``) of every batch group: a permutation of
-        the groups drawn from the recipe's seed, cut into runs whose lengths are the ratios times
-        the number of groups, rounded by largest remainder (so they sum to the group count)."""
-        cached = self.__dict__.get("_group_splits")
-        if cached is None:
-            n = self.num_groups
-            exact = [self.split_ratios[k] * n for k in SPLITS]
-            counts = [int(math.floor(e)) for e in exact]
-            by_rest = sorted(range(len(SPLITS)), key=lambda j: (-(exact[j] - counts[j]), j))
-            for j in by_rest[:n - sum(counts)]:
-                counts[j] += 1
-            order = self.rng(_SPLIT, 0).permutation(n)
-            cached = [""] * n
-            pos = 0
-            for name, c in zip(SPLITS, counts):
-                for g in order[pos:pos + c]:
-                    cached[int(g)] = name
-                pos += c
-            self.__dict__["_group_splits"] = cached
-        return list(cached)
+        """The split (``"train"``, ``"valid"`` or ``"test"``) of every batch group (before the
+        motion hold-out): the group hold-outs go to test, the rest is a permutation of the units
+        (groups, or grooms with ``[split].by = "groom"``) drawn from the recipe's seed, cut into runs
+        whose lengths are the shares times the number of units, rounded by largest remainder."""
+        return list(self._splits()[0])
 
     def sequence_split(self, i: int) -> str:
-        """The split of sequence i (that of its batch group)."""
-        return self.group_splits()[i // self.batch]
+        """The split of sequence i (that of its batch group, or test when its motion is held out)."""
+        return self._splits()[1][i]
+
+    def sequence_holdout(self, i: int) -> List[str]:
+        """Why sequence i is held out (``"motion"``, ``"collider"``, ``"groom_seed"``, ``"preset"``), or []."""
+        return list(self._splits()[2][i])
 
     def group_sequences(self, g: int) -> List[int]:
         """Indices of the sequences of batch group g."""
@@ -168,11 +206,14 @@ class Recipe:
     def group_spec(self, g: int) -> Dict[str, Any]:
         """The draws of batch group g: concrete ``groom`` and ``params`` tables (JSON-friendly)."""
         rng = self.rng(_GROUP, g)
-        groom = sample(self.raw.get("groom", {"kind": "sphere"}), rng)
+        groom = sample(self.raw.get("groom", {"kind": "sphere"}), rng, g)
         if "seed" not in groom and ("preset" in groom):
             groom["seed"] = int(rng.integers(0, 2**31 - 1))
-        params = sample(self.raw.get("params", {}), rng)
-        return {"group": g, "groom": groom, "params": params}
+        params = sample(self.raw.get("params", {}), rng, g)
+        out = {"group": g, "groom": groom, "params": params}
+        if "colliders" in self.raw:  # drawn last: recipes without samplers there draw as before
+            out["colliders"] = sample(self.raw["colliders"], rng, g)
+        return out
 
     def sequence_spec(self, i: int) -> Dict[str, Any]:
         """The draws of sequence i: concrete ``motion`` (a motion dict for
@@ -181,29 +222,31 @@ class Recipe:
             raise IndexError(f"sequence {i} out of range (recipe {self.name!r} has {self.num_sequences})")
         rng = self.rng(_SEQUENCE, i)
         where = f"{self.where} (sequence {i})"
-        motion = self._draw_motion(rng, where)
+        kind, motion = self._draw_motion(rng, where, i)
         wind = None
         w = self.raw.get("wind")
         if w is not None:
             p = float(w.get("probability", 1.0))
             on = bool(rng.uniform() < p)  # always drawn, so later draws do not depend on p
-            drawn = sample({k: v for k, v in w.items() if k != "probability"}, rng)
+            drawn = sample({k: v for k, v in w.items() if k != "probability"}, rng, i)
             seed = int(rng.integers(0, 2**31 - 1))
             if on:
                 drawn.setdefault("seed", seed)
                 wind = drawn
-        return {"index": i, "group": i // self.batch, "seed": self.sequence_seed(i), "motion": motion, "wind": wind}
+        return {"index": i, "group": i // self.batch, "seed": self.sequence_seed(i), "motion": motion, "wind": wind,
+                "motion_type": kind}
 
-    def _draw_motion(self, rng: np.random.Generator, where: str) -> dict:
+    def _draw_motion(self, rng: np.random.Generator, where: str, index: int = 0) -> tuple:
+        """(the drawn motion type, e.g. "random", and the concrete motion dict) of sequence ``index``."""
         m = self.raw.get("motion")
         if m is None:
-            return {"type": "static"}
-        kind = sample(m.get("type", "static"), rng)
+            return "static", {"type": "static"}
+        kind = sample(m.get("type", "static"), rng, index)
         if not isinstance(kind, str) or kind not in motion_types():
             _fail(where, f"[motion].type must be one of {sorted(motion_types())}; got {kind!r}")
-        args = sample(motion_common(m), rng)
-        args.update(sample(m.get(kind, {}), rng))
-        return self._concrete_motion(kind, args, rng, where)
+        args = sample(motion_common(m), rng, index)
+        args.update(sample(m.get(kind, {}), rng, index))
+        return kind, self._concrete_motion(kind, args, rng, where)
 
     def _concrete_motion(self, kind: str, args: dict, rng: np.random.Generator, where: str) -> dict:
         if kind == "random":
@@ -212,23 +255,30 @@ class Recipe:
             args["path"] = os.path.join(self.base, args["path"])
         return {"type": kind, **args}
 
-    def make_scene(self, groom: dict, params: dict, motion: dict, wind: Optional[dict], name: str, where: str) -> dict:
-        """The validated scene of concrete ``groom``/``params``/``motion``/``wind`` tables with the
+    def make_scene(self, groom: dict, params: dict, motion: dict, wind: Optional[dict], name: str, where: str,
+                   colliders: Optional[list] = None) -> dict:
+        """The validated scene of concrete ``groom``/``params``/``motion``/``wind`` tables (and the
+        drawn ``colliders``; default the recipe's, which must then hold no sampler) with the
         recipe's fixed sections; a :class:`RecipeError` (naming the key) when it is invalid."""
         scene = {"name": name, "frames": self.frames, "groom": groom, "params": params, "motion": motion}
         for k in ("dt", "substeps", "head", "stages", "hair_hair", "colliders"):
             if k in self.raw:
                 scene[k] = copy.deepcopy(self.raw[k])
+        if colliders is not None:
+            scene["colliders"] = copy.deepcopy(colliders)
         if wind is not None:
             scene["wind"] = wind
         try:
             scene = parse_scene(scene, where=where, base=self.base)
         except SceneError as err:
             raise RecipeError(str(err)) from None
-        guides = self.store["guides"]
+        guides = max(self.guide_counts, default=0)
         strands = max(1, int(round(scene["groom"].get("strands", 1000) * float(scene["scale"]))))
-        if guides > strands:
-            _fail(where, f"[store].guides = {guides} exceeds the groom's {strands} strands")
+        if guides > strands and "file" not in scene["groom"]:
+            _fail(where, f"[store].guides = {self.store['guides']} exceeds the groom's {strands} strands")
+        if guides and scene["groom"]["compare_ms"]:
+            _fail(where, "[store].guides with [groom].compare_ms: the doubled groom (AMS and mass-spring copies) has "
+                         "no single guide order; store no guides or compare on separate runs")
         return scene
 
     def group_scene(self, g: int) -> dict:
@@ -237,7 +287,7 @@ class Recipe:
         spec = self.group_spec(g)
         first = self.sequence_spec(self.group_sequences(g)[0])
         return self.make_scene(spec["groom"], spec["params"], first["motion"], first["wind"], f"{self.name}/group{g}",
-                               f"{self.where} (group {g})")
+                               f"{self.where} (group {g})", colliders=spec.get("colliders"))
 
     def to_json(self) -> str:
         return _canonical(self.raw)
@@ -260,11 +310,28 @@ def parse_recipe(raw: dict, where: str = "recipe", base: str = ".") -> Recipe:
     raw = copy.deepcopy(raw)
     raw.setdefault("name", "dataset")
     check_top(raw, where, base)
+    for req in raw.get("requires", []):
+        path = req if os.path.isabs(req) else os.path.join(base, req)
+        if not os.path.exists(path):
+            raise MissingRequirement(f"{where}: requires {req!r} ({os.path.normpath(path)}), which is absent (e.g. "
+                                     f"the real assets of ../shared/assets); a suite skips this recipe")
     content = {k: v for k, v in raw.items() if k not in _NOT_HASHED}
     digest = hashlib.sha256(_canonical(content).encode()).hexdigest()
     recipe = Recipe(raw=raw, where=where, base=base, hash=digest)
     check_sampler_values(recipe)
     recipe.group_scene(0)
+    if raw.get("single_groom") and recipe.groom_varies:
+        groom = raw.get("groom", {})
+        why = ("[groom] holds samplers" if has_sampler(groom) else
+               "[groom].seed is not set, so each batch group draws its own seed")
+        _fail(where, f"single_groom = true, but {why}: this recipe would grow up to {recipe.num_groups} different "
+                     f"grooms (one per batch group); set [groom].seed = 0 (any integer) and remove the samplers from "
+                     f"[groom]")
+    if raw.get("split", {}).get("hold_out"):
+        from ams_torch.apps.recipe.splits import check_hold_out
+
+        check_hold_out(recipe)
+        recipe._splits()  # the hold-outs must leave every split with a positive share some sequences
     from ams_torch.apps.motion import make_motion
     from ams_torch.stages.wind import Wind
 

@@ -10,14 +10,20 @@ import numpy as np
 from ams_torch.apps.scene import SceneError
 from ams_torch.apps.scene.checks import is_number
 
-__all__ = ["RecipeError", "SAMPLERS", "is_sampler", "sample", "check_samplers", "has_sampler", "sites", "options",
+__all__ = ["RecipeError", "MissingRequirement", "SAMPLERS", "is_sampler", "sample", "check_samplers", "has_sampler",
+           "sites", "options",
            "first", "put", "key_name"]
 
-SAMPLERS = ("uniform", "log_uniform", "randint", "choice")
+SAMPLERS = ("uniform", "log_uniform", "randint", "choice", "cycle")
+_LISTS = ("choice", "cycle")  # samplers over a list of plain options
 
 
 class RecipeError(SceneError):
     """A recipe is invalid; the message names the file and the key."""
+
+
+class MissingRequirement(RecipeError):
+    """A recipe's ``requires`` path (e.g. a folder of real assets) is absent; a suite skips it."""
 
 
 def _fail(where: str, msg: str):
@@ -32,12 +38,12 @@ def check_samplers(v, where: str, key: str) -> None:
     """Check every sampler inside v (tables, lists) is well formed."""
     if is_sampler(v):
         kind, arg = next(iter(v.items()))
-        if kind == "choice":
+        if kind in _LISTS:
             if not isinstance(arg, list) or not arg:
-                _fail(where, f"{key}: choice needs a non-empty list; got {arg!r}")
+                _fail(where, f"{key}: {kind} needs a non-empty list; got {arg!r}")
             for j, a in enumerate(arg):
                 if has_sampler(a):
-                    _fail(where, f"{key}: choice option {j + 1} holds a sampler; options are plain values")
+                    _fail(where, f"{key}: {kind} option {j + 1} holds a sampler; options are plain values")
             return
         if not (isinstance(arg, list) and len(arg) == 2 and all(is_number(a) for a in arg)):
             _fail(where, f"{key}: {kind} needs [low, high] numbers; got {arg!r}")
@@ -59,10 +65,14 @@ def check_samplers(v, where: str, key: str) -> None:
             check_samplers(x, where, f"{key}[{j}]")
 
 
-def sample(v, rng: np.random.Generator):
-    """Replace every sampler in v (recursively through tables and lists) by a draw from rng."""
+def sample(v, rng: np.random.Generator, index: int = 0):
+    """Replace every sampler in v (recursively through tables and lists) by a draw from rng;
+    ``cycle`` takes option ``index mod n`` (index: the batch group's or the sequence's) and
+    draws nothing."""
     if is_sampler(v):
         kind, arg = next(iter(v.items()))
+        if kind == "cycle":
+            return copy.deepcopy(arg[int(index) % len(arg)])
         if kind == "uniform":
             return float(rng.uniform(arg[0], arg[1]))
         if kind == "log_uniform":
@@ -71,9 +81,9 @@ def sample(v, rng: np.random.Generator):
             return int(rng.integers(arg[0], arg[1], endpoint=True))
         return copy.deepcopy(arg[int(rng.integers(len(arg)))])
     if isinstance(v, dict):
-        return {k: sample(x, rng) for k, x in v.items()}
+        return {k: sample(x, rng, index) for k, x in v.items()}
     if isinstance(v, list):
-        return [sample(x, rng) for x in v]
+        return [sample(x, rng, index) for x in v]
     return v
 
 
@@ -103,8 +113,8 @@ def options(sampler: dict) -> List[tuple]:
     """(value, description) of each value a sampler can produce that decides validity: every
     choice option, both ends of a range (integers for randint)."""
     kind, arg = next(iter(sampler.items()))
-    if kind == "choice":
-        return [(a, f"choice option {j + 1} of {len(arg)}") for j, a in enumerate(arg)]
+    if kind in _LISTS:
+        return [(a, f"{kind} option {j + 1} of {len(arg)}") for j, a in enumerate(arg)]
     conv = int if kind == "randint" else float
     return [(conv(arg[0]), f"{kind} low end"), (conv(arg[1]), f"{kind} high end")]
 
@@ -121,6 +131,8 @@ def first(v):
 
 
 def put(v, path: tuple, value):
+    if not path:  # the whole value is the sampler
+        return copy.deepcopy(value)
     out = copy.deepcopy(v)
     node = out
     for p in path[:-1]:
