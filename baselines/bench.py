@@ -36,7 +36,7 @@ import torch
 from baselines.protocol import MethodError, check_prediction, describe, resolve_method, safe_name
 from baselines.scene import make_sample
 
-__all__ = ["run", "resolve_source", "suite_recipes", "dataset_info", "provenance", "BenchError", "SUITES_DIR",
+__all__ = ["run", "resolve_source", "suite_path", "dataset_info", "provenance", "BenchError", "SUITES_DIR",
            "RESULTS", "GUIDE_SOURCES"]
 
 SUITES_DIR = Path(__file__).resolve().parents[1] / "datasets" / "bench"
@@ -50,51 +50,45 @@ class BenchError(ValueError):
 
 
 # -- sources ----------------------------------------------------------------------------------
-def suite_recipes(name: str) -> List[Path]:
-    """The recipes of suite ``name``: ``datasets/bench/<name>.toml`` or every ``*.toml`` of the folder
-    ``datasets/bench/<name>/`` (sorted)."""
-    one, folder = SUITES_DIR / f"{name}.toml", SUITES_DIR / name
-    if one.is_file():
-        return [one]
-    if folder.is_dir():
-        recipes = sorted(folder.glob("*.toml"))
-        if recipes:
-            return recipes
+def suite_path(name: str) -> Path:
+    """The suite ``name`` of ``datasets/bench/``: ``<name>.toml`` (one recipe) or the folder
+    ``<name>/`` (a recipe per track)."""
+    for p in (SUITES_DIR / f"{name}.toml", SUITES_DIR / name):
+        if p.exists():
+            return p
     known = sorted({p.stem for p in SUITES_DIR.glob("*.toml")} | {p.name for p in SUITES_DIR.iterdir() if p.is_dir()}) \
         if SUITES_DIR.is_dir() else []
     raise BenchError(f"{name!r} is neither a dataset (no such file or folder) nor a suite of {SUITES_DIR} "
                      f"(suites: {', '.join(known) or 'none'})")
 
 
-def _generate(recipe_path: Path, out: Path, device, log: Callable[[str], None], progress: bool) -> Optional[Path]:
-    """Generate one suite recipe into ``out`` (resumes; a no-op when complete). None when the
-    recipe cannot run here (e.g. it needs ../shared/assets, which is absent): said in the log."""
-    from ams_torch.apps.datagen import generate
-    from ams_torch.apps.recipe import load_recipe
-
-    try:
-        recipe = load_recipe(str(recipe_path))
-    except FileNotFoundError as err:
-        log(f"skip {recipe_path.name}: {err}")
-        return None
-    generate(recipe, str(out), device=None if device is None else str(device), progress=progress, log=log)
-    return out
-
-
 def resolve_source(source: str, out: Path, device=None, log: Callable[[str], None] = print,
                    progress: bool = True) -> List[tuple]:
-    """[(name, dataset path)] for a dataset path or a suite name (generated into ``out/data``)."""
-    if os.path.exists(source):
-        return [(Path(source).stem if Path(source).is_file() else Path(source).name, Path(source))]
-    recipes = suite_recipes(source)
-    found = []
-    for r in recipes:
-        path = _generate(r, out / "data" / r.stem, device, log, progress)
-        if path is not None:
-            found.append((r.stem if len(recipes) > 1 else source, path))
-    if not found:
-        raise BenchError(f"suite {source!r}: none of its recipes could be generated here")
-    return found
+    """[(name, dataset path)]: a dataset file or folder, a generated suite's folder (each dataset
+    sub-folder), or a suite name of ``datasets/bench/`` generated first into ``out/data`` (resumes
+    like ``generate``; a recipe that needs absent assets is skipped with a message)."""
+    from ams_torch.apps.data.format import list_datasets
+
+    if os.path.isfile(source):
+        return [(Path(source).stem, Path(source))]
+    if os.path.isdir(source):
+        return [(Path(p).name, Path(p)) for p in list_datasets(source)]
+    suite = suite_path(source)
+    dev = None if device is None else str(device)
+    data = out / "data"
+    if suite.is_file():
+        from ams_torch.apps.datagen import generate
+        from ams_torch.apps.recipe import load_recipe
+
+        recipe = load_recipe(str(suite))
+        generate(recipe, str(data / recipe.name), device=dev, progress=progress, log=log)
+        return [(recipe.name, data / recipe.name)]
+    from ams_torch.apps.datagen.suite import generate_suite
+
+    names = generate_suite(str(suite), str(data), device=dev, progress=progress, log=log)
+    if not names:
+        raise BenchError(f"suite {source!r}: none of its recipes can run here")
+    return [(n, data / n) for n in sorted(names)]
 
 
 # -- dataset facts ----------------------------------------------------------------------------
@@ -218,19 +212,10 @@ def _key(row: dict) -> tuple:
 
 # -- the run ----------------------------------------------------------------------------------
 def _open(path: Path, split, guides: int, source: str, window=None):
+    """The split of a dataset as benchmark samples of G guides (whole sequences by default)."""
     from ams_torch.apps.data import HairSequenceDataset
 
-    fields = ["positions", "rotations", "translations"]
-    return HairSequenceDataset(str(path), window=window, split=split, guides=guides, guide_source=source,
-                               fields=fields + _collider_fields(path))
-
-
-def _collider_fields(path: Path) -> List[str]:
-    from ams_torch.apps.data.format import list_files, open_dataset
-
-    with open_dataset(list_files(str(path))[0]) as f:
-        g = f[next(k for k in f.keys() if k.startswith("seq_"))]
-        return [k for k in ("collider_rotations", "collider_translations") if k in g]
+    return HairSequenceDataset(str(path), window=window, split=split, guides=guides, guide_source=source)
 
 
 def _predict(method, spec: str, sample: dict, device) -> tuple:
@@ -381,19 +366,30 @@ def _score_split(method, spec: str, name: str, path: Path, split: str, g: int, s
             continue
         sample = make_sample(ds[i], ds, device=device)
         ref = sample.pop("positions")
+        tags = _tags(ds, seq)
+        new = []
         if ref_key not in done:
             dense = dense_ds[i]["guide_positions"].to(ref) if dense_ds is not None else None
-            for row in _reference_rows(name, path, split, g, src, sample, ref, dense):
-                results["rows"].append(row)
-                done.add(_key(row))
+            new += _reference_rows(name, path, split, g, src, sample, ref, dense)
         if key not in done:
             pred, ms = _predict(method, spec, sample, device)
-            row = {"dataset": name, "method": spec, "guides": g, "guide_source": src, "split": split, "sequence": seq,
-                   **sequence_metrics(pred.to(ref), ref, sample), "ms_per_frame_method": ms, **describe(method)}
-            row["method"] = spec
+            new.append({"dataset": name, "guides": g, "guide_source": src, "split": split, "sequence": seq,
+                        **sequence_metrics(pred.to(ref), ref, sample), "ms_per_frame_method": ms, **describe(method),
+                        "method": spec})
+        for row in new:
+            row.update(tags)
             results["rows"].append(row)
-            done.add(key)
+            done.add(_key(row))
         _atomic_json(results_path, results)
+
+
+def _tags(ds, seq: int) -> dict:
+    """Why a sequence is held out (its ``holdout`` tags: motion, collider, groom_seed, preset; none:
+    by the split's shares) and its motion type, for the leaderboard's breakdown."""
+    a = ds.sequence_arrays(seq)
+    tags = a.get("holdout") or []
+    return {"holdout": "+".join(sorted(tags)) if isinstance(tags, list) else str(tags),
+            "motion_type": a.get("motion_type", "")}
 
 
 def parse_options(items: Sequence[str]) -> Dict[str, dict]:

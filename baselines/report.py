@@ -96,8 +96,14 @@ def leaderboard(results: dict) -> str:
             for m in [r for r in REFERENCE_ROWS if (src, g, r) in overall] + ranked:
                 entries.append(((str(g), m), overall[(src, g, m)]))
         out += _table(entries) + [""]
-    detail = summarise(rows, ("dataset", "split", "guide_source", "guides", "method"))
-    out += ["## Per dataset and split", ""]
+    rows = [dict(r, subset=r["split"] + (f" (held out: {r['holdout']})" if r.get("holdout") else
+                                         " (by the split's shares)" if r["split"] == "test" else ""))
+            for r in rows]
+    detail = summarise(rows, ("dataset", "subset", "guide_source", "guides", "method"))
+    out += ["## Per dataset and split", "",
+            "Test sequences are broken down by why they are held out: an unseen groom (`groom_seed`, `preset`), "
+            "an unseen motion (`motion`), an unseen collider (`collider`), or only the split's random shares "
+            "(seen kinds of groom, motion and collider, new draws).", ""]
     for ds, split, src in sorted({k[:3] for k in detail}):
         out += [f"### {ds} / {split} / guides {src}", ""]
         entries = [((str(g), m), detail[(ds, split, src, g, m)])

@@ -57,7 +57,7 @@ def sequence_colliders(dataset, index: int, device=None, dtype=torch.float32) ->
     if key not in _CACHE:
         scene = json.loads(text)
         cols: List = []
-        head = _head_collider(scene, read_scene_meshes(path))
+        head = _head_collider(scene, read_scene_meshes(path, index))
         if head is not None:
             cols.append(head)
         if scene["stages"].get("collisions", False):
