@@ -35,7 +35,8 @@ from ams_torch.sim.op_support import NATIVE_DTYPES
 from ams_torch.sim.state import Config, ExternalForce
 from ams_torch.solver import build as _native
 
-__all__ = ["frame_dynamics_diff_op", "native_frame_dynamics_diff", "native_adjoint_supported", "substep_pose_tensor"]
+__all__ = ["frame_dynamics_diff_op", "frame_dynamics_adjoint_op", "native_frame_dynamics_diff", "native_adjoint_supported",
+           "substep_pose_tensor"]
 
 _KINDS = {"cpu": "frame_adjoint_cpu", "cuda": "frame_adjoint_cuda"}
 _GRAD_FIELDS = ("mass", "drag", "edge", "bend", "torsion", "integrity", "angular")  # adjoint outputs 4 … 10
@@ -133,21 +134,63 @@ def _setup_context(ctx, inputs, output):
     ctx.save_for_backward(*state, *model, poses, *([external_force] if ctx.has_ext else []))
 
 
-def _torch_vjp(state, external_force, model, poses, settings, gx, gv):
-    """The torch definition's vector-Jacobian product (devices or settings without the native adjoint)."""
-    leaves = [t.detach().requires_grad_(t.is_floating_point()) for t in state]
+def _torch_vjp(state, external_force, model, poses, settings, gx, gv) -> list:
+    """The torch definition's vector-Jacobian product, in the layout of :func:`frame_dynamics_adjoint_op`."""
+    leaves = [t.detach().requires_grad_() for t in state]
     ext = external_force.detach().requires_grad_() if external_force is not None else None
-    mod = [t.detach().requires_grad_(t.is_floating_point()) for t in model]
+    idx = [MODEL_FIELDS.index(f) for f in _GRAD_FIELDS]
+    mod = [t.detach().requires_grad_(i in idx) for i, t in enumerate(model)]
     ps = poses.detach().requires_grad_()
     with torch.enable_grad():
         xo, vo = _posed_torch(leaves, ext, mod, ps, *settings)
-        wrt = leaves + ([ext] if ext is not None else []) + [m for m in mod if m.requires_grad] + [ps]
-        grads = list(torch.autograd.grad((xo, vo), wrt, (gx, gv), allow_unused=True))
-    g_state = grads[:4]
-    g_ext = grads[4] if ext is not None else None
-    rest = grads[4 + (ext is not None):]
-    g_model = [rest.pop(0) if m.requires_grad else None for m in mod]
-    return g_state, g_ext, g_model, rest[0]
+        wrt = leaves[:3] + ([ext] if ext is not None else []) + [mod[i] for i in idx] + [ps]
+        grads = torch.autograd.grad((xo, vo), wrt, (gx, gv), allow_unused=True)
+    grads = [torch.zeros_like(w) if g is None else g for g, w in zip(grads, wrt)]
+    if ext is None:
+        grads.insert(3, state[0].new_empty(0))
+    return grads
+
+
+@torch.library.custom_op("ams_torch::frame_dynamics_adjoint", mutates_args=())
+def frame_dynamics_adjoint_op(state: List[torch.Tensor], external_force: Optional[torch.Tensor],
+                              model: List[torch.Tensor], poses: torch.Tensor, dt: float, substeps: int,
+                              ftl_damping: float, integrity_model: int, angular: bool, angular_reaction: bool,
+                              implicit_angular: bool, geometric_stiffness: bool, inextensibility: bool,
+                              x_bar: torch.Tensor, v_bar: torch.Tensor) -> List[torch.Tensor]:
+    """Registered op ``ams_torch::frame_dynamics_adjoint``: the vector-Jacobian product of
+    :func:`frame_dynamics_diff_op` for the output adjoints x_bar, v_bar (..., S, N, 3). Default (any
+    device): the torch definition's; CPU / CUDA: the native adjoint kernel. Returns [x̄, v̄, ḡhost_rest
+    (each like x), external force (like x, or an empty tensor without one), mass (S, N), drag (S, N),
+    edge (S, N−1), bend (S, N−2), torsion (S, N−3), integrity (S, N), angular (S, N−1), poses
+    (P, M + 1, 12)]."""
+    settings = (dt, substeps, ftl_damping, integrity_model, angular, angular_reaction, implicit_angular,
+                geometric_stiffness, inextensibility)
+    return _torch_vjp(state, external_force, model, poses, settings, x_bar, v_bar)
+
+
+def _adjoint_kernel(state, external_force, model, poses, *settings_and_seeds):
+    *settings, gx, gv = settings_and_seeds
+    ns = _namespace(state[0])
+    if ns is None or not _native_ok(settings[3], settings[4], settings[5]):
+        return _torch_vjp(state, external_force, model, poses, settings, gx, gv)
+    out = ns.frame_adjoint(state, external_force, model, poses, *settings, gx, gv)
+    g_poses = out[11].sum(1)  # (B, M + 1, 12): every strand's share
+    if poses.shape[0] == 1:
+        g_poses = g_poses.sum(0, keepdim=True)
+    return [out[0], out[1], out[2], out[3]] + [g.sum(0) for g in out[4:11]] + [g_poses]
+
+
+frame_dynamics_adjoint_op.register_kernel("cpu")(_adjoint_kernel)
+frame_dynamics_adjoint_op.register_kernel("cuda")(_adjoint_kernel)
+
+
+@frame_dynamics_adjoint_op.register_fake
+def _adjoint_fake(state, external_force, model, poses, *settings_and_seeds):
+    x = state[0]
+    like = lambda t: torch.empty_like(t, memory_format=torch.contiguous_format)  # noqa: E731
+    ext = like(x) if external_force is not None else x.new_empty(0)
+    return [like(x), like(x), like(x), ext] + [like(model[MODEL_FIELDS.index(f)]) for f in _GRAD_FIELDS] + \
+        [like(poses)]
 
 
 def _backward(ctx, gx, gv):
@@ -159,20 +202,12 @@ def _backward(ctx, gx, gv):
     x = state[0]
     gx = torch.zeros_like(x) if gx is None else gx.contiguous()
     gv = torch.zeros_like(x) if gv is None else gv.contiguous()
-    s = ctx.settings
-    ns = _namespace(x)
-    if ns is None or not _native_ok(s[3], s[4], s[5]):
-        g_state, g_ext, g_model, g_poses = _torch_vjp(state, ext, model, poses, s, gx, gv)
-        return g_state, g_ext, g_model, g_poses, *([None] * len(s))
-    out = ns.frame_adjoint(state, ext, model, poses, *s, gx, gv)
+    out = frame_dynamics_adjoint_op(state, ext, model, poses, *ctx.settings, gx, gv)
     g_model: list = [None] * len(model)
     for j, name in enumerate(_GRAD_FIELDS):
-        g_model[MODEL_FIELDS.index(name)] = out[4 + j].sum(0)
-    g_poses = out[11].sum(1)  # (B, M + 1, 12): every strand's share
-    if poses.shape[0] == 1:
-        g_poses = g_poses.sum(0, keepdim=True)
-    return [out[0], out[1], out[2], None], (out[3] if ctx.has_ext else None), g_model, g_poses, \
-        *([None] * len(s))
+        g_model[MODEL_FIELDS.index(name)] = out[4 + j]
+    return [out[0], out[1], out[2], None], (out[3] if ctx.has_ext else None), g_model, out[11], \
+        *([None] * len(ctx.settings))
 
 
 frame_dynamics_diff_op.register_autograd(_backward, setup_context=_setup_context)

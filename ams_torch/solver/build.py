@@ -132,6 +132,19 @@ _BACKENDS = {
 }
 
 
+#: How each stage of a frame whose inputs require grad runs on a native simulator (forward and
+#: adjoint): reported by native_status()["gradients"].
+GRADIENT_STAGES = {
+    "dynamics": "native forward and adjoint (frame_adjoint_cpu / frame_adjoint_cuda) for the Hookean or no "
+                "integrity coupling and the angular couple; the non-Hookean law, the one-particle angular form "
+                "and a callable external force take the torch definition",
+    "hair_hair": "torch definition",
+    "collisions": "torch definition",
+    "finish": "torch definition",
+    "plastic_yield": "torch definition",
+}
+
+
 class NativeBuildWarning(RuntimeWarning):
     """The native solver could not be built or loaded; the plain-torch solver is used."""
 
@@ -188,7 +201,9 @@ def native_status(build: bool = False) -> dict:
         ``{"enabled": bool, "cache_dir": str, "cpu": {...}, "cuda": {...}}``; each backend
         dict has ``built`` (bool), ``reason`` (why not, or None), ``attempted`` (a build or
         load was tried in this process), ``library`` (path of the loaded .so), ``build_dir``,
-        ``build_seconds`` (compile + load time, ~0 when cached) and ``flags``.
+        ``build_seconds`` (compile + load time, ~0 when cached) and ``flags``; ``gradients`` says,
+        per stage, what a frame whose inputs require grad runs (native kernels and adjoint, or the
+        torch definition).
     """
     if build:
         for kind, spec in _BACKENDS.items():
@@ -201,6 +216,12 @@ def native_status(build: bool = False) -> dict:
             if not st["attempted"]:
                 st["reason"] = _static_reason(kind) or "not built yet: built on first use"
             out[kind] = st
+        grad = dict(GRADIENT_STAGES)
+        if not any(_state[k]["built"] for k in ("frame_adjoint_cpu", "frame_adjoint_cuda")):
+            adjoint = out["frame_adjoint_cpu"]["reason"]
+            grad["dynamics"] = grad["dynamics"] if adjoint.startswith("not built yet") else \
+                f"torch definition (the adjoint kernels did not build: {adjoint})"
+        out["gradients"] = grad
         return out
 
 
