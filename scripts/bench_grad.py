@@ -118,7 +118,7 @@ def gradient_stages(sim: at.Simulator) -> str:
     status = at.native_status().get("gradients", {})
     if sim.config.backend != "native":
         return "none (torch definition)"
-    native = [name for name, how in status.items() if how == "native"]
+    native = [name for name, how in status.items() if how.startswith("native")]
     return ", ".join(native) or "none"
 
 
