@@ -30,10 +30,15 @@ def adjoint_cpu():
 
 
 def _gradients(backend: str, params: at.Params, learnable=MATERIAL, frames: int = 2, scenes: int = 0,
-               shared_pose: bool = True, strands: int = 5, pinned=None, dtype=F64):
-    """Gradients of a scalar of a short rollout with respect to every leaf, for one backend."""
+               shared_pose: bool = True, strands: int = 5, pinned=None, dtype=F64, every_stage: bool = False,
+               h: float = 0.0):
+    """Gradients of a scalar of a short rollout with respect to every leaf, for one backend (with
+    ``every_stage``: a head collider and the hair–hair grid too). With h > 0 also the central
+    difference of the loss along a random direction of the leaves: returns (grads, (autograd, fd))."""
     rest = sphere_groom(strands, 8, length=0.12, seed=1, dtype=dtype)
-    sim = at.Simulator(rest, params, dtype=dtype, learnable=learnable, backend=backend)
+    stages = dict(colliders=[at.stages.SphereCollider(radius=0.1, follow_head=True)],
+                  hair_hair=at.HairHair(resolution=8, pressure_iterations=10)) if every_stage else {}
+    sim = at.Simulator(rest, params, dtype=dtype, learnable=learnable, backend=backend, **stages)
     if pinned is not None:  # a different pinned prefix per strand
         counts = torch.as_tensor(pinned, dtype=torch.int64)
         sim.model.num_pinned = counts
@@ -52,21 +57,38 @@ def _gradients(backend: str, params: at.Params, learnable=MATERIAL, frames: int 
         angles = torch.linspace(0.0, 0.5, scenes, dtype=dtype)
         rot = at.geometry.pose.axis_angle_to_matrix(torch.stack([angles * 0, angles, angles * 0], -1))
         init = Pose(rot, torch.zeros(scenes, 3, dtype=dtype))
-    s = sim.initial_state(init)
-    s = s.replace(x=s.x + dx, v=s.v + dv, ghost_rest=s.ghost_rest + dg)
-    for p in base:
-        r, t, lin, ang = p.rotation, p.translation, p.linear_velocity, p.angular_velocity
-        if scenes and not shared_pose:
-            r, t = r.expand(scenes, 3, 3), t.expand(scenes, 3)
-            lin, ang = lin.expand(scenes, 3), ang.expand(scenes, 3)
-        s = sim.step(s, Pose(r, t + shift, lin, ang, check=False), external_force=ext)
-    loss = (w * s.x).sum() + 0.01 * (w * s.v).sum()
+    def loss_fn():
+        s = sim.initial_state(init)
+        s = s.replace(x=s.x + dx, v=s.v + dv, ghost_rest=s.ghost_rest + dg)
+        for p in base:
+            r, t, lin, ang = p.rotation, p.translation, p.linear_velocity, p.angular_velocity
+            if scenes and not shared_pose:
+                r, t = r.expand(scenes, 3, 3), t.expand(scenes, 3)
+                lin, ang = lin.expand(scenes, 3), ang.expand(scenes, 3)
+            s = sim.step(s, Pose(r, t + shift, lin, ang, check=False), external_force=ext)
+        return (w * s.x).sum() + 0.01 * (w * s.v).sum()
+
     names = ["x0", "v0", "ghost_rest", "external_force", "head shift"] + [n for n, _ in sim.named_parameters()]
-    grads = torch.autograd.grad(loss, [dx, dv, dg, ext, shift] + list(sim.parameters()), allow_unused=True)
-    return {n: g for n, g in zip(names, grads) if g is not None}  # ghost_rest is unused without couplings
+    leaves = [dx, dv, dg, ext, shift] + list(sim.parameters())
+    grads = torch.autograd.grad(loss_fn(), leaves, allow_unused=True)
+    out = {n: g for n, g in zip(names, grads) if g is not None}  # ghost_rest is unused without couplings
+    if not h:
+        return out
+    d = [torch.randn(t.shape, generator=g, dtype=dtype) * (t.detach().abs() + 1e-3 * float(t.detach().abs().max()))
+         for t in leaves]
+    ad = sum(float((a * b).sum()) for a, b in zip(grads, d) if a is not None)
+    vals = []
+    with torch.no_grad():
+        for sign in (1.0, -1.0):
+            for t, dt in zip(leaves, d):
+                t.add_(sign * h * dt)
+            vals.append(float(loss_fn()))
+            for t, dt in zip(leaves, d):
+                t.sub_(sign * h * dt)
+    return out, (ad, (vals[0] - vals[1]) / (2 * h))
 
 
-def _assert_parity(params, tol=1e-8, **kw):
+def _assert_parity(params, tol: float = 1e-8, **kw):
     ref = _gradients("torch", params, **kw)
     nat = _gradients("native", params, **kw)
     for name in set(nat) - set(ref):  # unused by the torch graph: the native gradient is zero
@@ -109,6 +131,15 @@ def test_native_gradients_of_batched_scenes_and_mixed_pinned_prefixes():
     _assert_parity(at.Params(), scenes=3, shared_pose=True)
     _assert_parity(at.Params(substeps=2), scenes=2, shared_pose=False)
     _assert_parity(at.Params(), pinned=[1, 2, 3, 0, 2])
+
+
+def test_every_stage_native_gradients_equal_the_torch_path_and_central_differences():
+    """Head contact and the hair–hair grid on: the dynamics run native (forward and adjoint), the
+    other stages the torch definition; the whole rollout's gradients equal the all-torch path's, and
+    a directional derivative equals the central difference of the native forward."""
+    _assert_parity(at.Params(), every_stage=True, frames=3)
+    _, (ad, fd) = _gradients("native", at.Params(), every_stage=True, frames=3, h=1e-6)
+    assert abs(ad) > 1e-3 and abs(ad - fd) <= 1e-6 * abs(ad), (ad, fd)
 
 
 def test_float32_native_gradients_agree_with_the_torch_path():
