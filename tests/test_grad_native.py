@@ -150,13 +150,25 @@ def test_float32_native_gradients_agree_with_the_torch_path():
         assert err <= 1e-3, (name, err)
 
 
-def test_the_non_hookean_law_keeps_the_torch_definition():
-    params = at.Params(integrity_model="nonhookean", integrity_rate=1000.0)
+def test_native_gradients_of_the_non_hookean_law():
+    """The non-Hookean law (its curve's transition, breaking point and soft ratio learnable, the
+    sag-free offset through the learnable integrity rate): 75 % of the particles start frames 2 and 3
+    past the transition, 30 % at the breaking point (the plastic yield put them there)."""
+    params = at.Params(integrity_model="nonhookean", integrity_rate=1000.0, integrity_transition=0.02,
+                       integrity_break=0.05)
+    _assert_parity(params, learnable=("drag", "integrity_rate", "integrity_transition", "integrity_break",
+                                      "integrity_soft_ratio"), frames=3)
+    _assert_parity(params.replace(substeps=2), learnable=("integrity_rate", "integrity_transition"), scenes=2,
+                   shared_pose=False)
+
+
+def test_the_one_particle_angular_form_keeps_the_torch_definition():
+    params = at.Params(angular_reaction=False)
     rest = sphere_groom(3, 8, seed=1, dtype=F64)
     sim = at.Simulator(rest, params, dtype=F64, backend="native", learnable=("drag",))
     coeffs = at.sim.coefficients(sim.model)
     assert not native_grad.native_adjoint_supported(sim.model, coeffs, sim.config, rest)
-    _assert_parity(params, learnable=("drag", "integrity_rate", "integrity_transition"))
+    _assert_parity(params, learnable=("drag", "angular_rigidity"))
 
 
 def _op_inputs(scenes=0, substeps=2, strands=3, particles=6):

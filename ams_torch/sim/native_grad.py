@@ -9,9 +9,10 @@ and velocities), and ``register_autograd`` makes its backward the native adjoint
 :mod:`ams_torch.solver.build`). The adjoint recomputes the frame (nothing is stored between the
 passes) and differentiates it with respect to x, v, ghost_rest, the external force, the per-element
 coefficients (mass, drag, edge / bend / torsion stiffness, integrity, angular: the gradients of the
-Params fields behind them, per-strand fields too, follow by autograd) and the substep poses.
+Params fields behind them, per-strand fields too, follow by autograd), the non-Hookean curve
+(transition, breaking point, soft ratio) and sag-free offset, and the substep poses.
 
-Where the adjoint is not native (the non-Hookean law, the one-particle angular form, a callable
+Where the adjoint is not native (the one-particle angular form, a callable
 external force, a grad-carrying rest shape, another dtype or device, kernels that do not build)
 the frame takes the torch definition; the step's other stages (hair–hair, collisions, the frame's
 end, the plastic yield) keep the torch definition in a gradient frame
@@ -40,6 +41,7 @@ __all__ = ["frame_dynamics_diff_op", "frame_dynamics_adjoint_op", "native_frame_
 
 _KINDS = {"cpu": "frame_adjoint_cpu", "cuda": "frame_adjoint_cuda"}
 _GRAD_FIELDS = ("mass", "drag", "edge", "bend", "torsion", "integrity", "angular")  # adjoint outputs 4 … 10
+_LAW_FIELDS = ("transition", "breaking", "soft_ratio")  # the non-Hookean curve: adjoint output 13
 _FIXED_FIELDS = ("rest_positions", "transition", "breaking", "soft_ratio", "edge_rest_length", "bend_rest_length",
                  "torsion_rest_length", "segment_length", "gravity")
 
@@ -97,15 +99,15 @@ def frame_dynamics_diff_op(state: List[torch.Tensor], external_force: Optional[t
 
     state, external_force, model: as ``ams_torch::frame_dynamics`` (:mod:`ams_torch.sim.native`);
     poses: (P, M + 1, 12) the substep head poses (:func:`substep_pose_tensor`); dt s, substeps M,
-    ftl_damping and the Config flags (integrity_model 0 none / 1 Hookean; the non-Hookean law and
-    the one-particle angular form have no native adjoint and take the torch definition). Returns new
+    ftl_damping and the Config flags (integrity_model 0 none / 1 Hookean / 2 non-Hookean; the
+    one-particle angular form has no native adjoint and takes the torch definition). Returns new
     contiguous (x, v), each (..., S, N, 3). Differentiable (register_autograd: the native adjoint)."""
     return _posed_torch(state, external_force, model, poses, dt, substeps, ftl_damping, integrity_model, angular,
                         angular_reaction, implicit_angular, geometric_stiffness, inextensibility)
 
 
 def _native_ok(integrity_model: int, angular: bool, angular_reaction: bool) -> bool:
-    return integrity_model != 2 and (angular_reaction or not angular)
+    return angular_reaction or not angular
 
 
 def _posed_kernel(state, external_force, model, poses, dt, substeps, *flags):
@@ -138,17 +140,19 @@ def _torch_vjp(state, external_force, model, poses, settings, gx, gv) -> list:
     """The torch definition's vector-Jacobian product, in the layout of :func:`frame_dynamics_adjoint_op`."""
     leaves = [t.detach().requires_grad_() for t in state]
     ext = external_force.detach().requires_grad_() if external_force is not None else None
-    idx = [MODEL_FIELDS.index(f) for f in _GRAD_FIELDS]
+    idx = [MODEL_FIELDS.index(f) for f in _GRAD_FIELDS + _LAW_FIELDS]
     mod = [t.detach().requires_grad_(i in idx) for i, t in enumerate(model)]
     ps = poses.detach().requires_grad_()
     with torch.enable_grad():
         xo, vo = _posed_torch(leaves, ext, mod, ps, *settings)
-        wrt = leaves[:3] + ([ext] if ext is not None else []) + [mod[i] for i in idx] + [ps]
+        wrt = leaves + ([ext] if ext is not None else []) + [mod[i] for i in idx] + [ps]
         grads = torch.autograd.grad((xo, vo), wrt, (gx, gv), allow_unused=True)
     grads = [torch.zeros_like(w) if g is None else g for g, w in zip(grads, wrt)]
+    g_sag = grads.pop(3)
     if ext is None:
         grads.insert(3, state[0].new_empty(0))
-    return grads
+    law = torch.stack([g.reshape(()) for g in grads[11:14]])
+    return grads[:11] + [grads[14], g_sag, law]
 
 
 @torch.library.custom_op("ams_torch::frame_dynamics_adjoint", mutates_args=())
@@ -162,7 +166,7 @@ def frame_dynamics_adjoint_op(state: List[torch.Tensor], external_force: Optiona
     device): the torch definition's; CPU / CUDA: the native adjoint kernel. Returns [x̄, v̄, ḡhost_rest
     (each like x), external force (like x, or an empty tensor without one), mass (S, N), drag (S, N),
     edge (S, N−1), bend (S, N−2), torsion (S, N−3), integrity (S, N), angular (S, N−1), poses
-    (P, M + 1, 12)]."""
+    (P, M + 1, 12), sag_offset (like x), the non-Hookean transition, breaking point and soft ratio (3,)]."""
     settings = (dt, substeps, ftl_damping, integrity_model, angular, angular_reaction, implicit_angular,
                 geometric_stiffness, inextensibility)
     return _torch_vjp(state, external_force, model, poses, settings, x_bar, v_bar)
@@ -177,7 +181,8 @@ def _adjoint_kernel(state, external_force, model, poses, *settings_and_seeds):
     g_poses = out[11].sum(1)  # (B, M + 1, 12): every strand's share
     if poses.shape[0] == 1:
         g_poses = g_poses.sum(0, keepdim=True)
-    return [out[0], out[1], out[2], out[3]] + [g.sum(0) for g in out[4:11]] + [g_poses]
+    return [out[0], out[1], out[2], out[3]] + [g.sum(0) for g in out[4:11]] + [g_poses, out[12],
+                                                                              out[13].sum((0, 1))]
 
 
 frame_dynamics_adjoint_op.register_kernel("cpu")(_adjoint_kernel)
@@ -190,7 +195,7 @@ def _adjoint_fake(state, external_force, model, poses, *settings_and_seeds):
     like = lambda t: torch.empty_like(t, memory_format=torch.contiguous_format)  # noqa: E731
     ext = like(x) if external_force is not None else x.new_empty(0)
     return [like(x), like(x), like(x), ext] + [like(model[MODEL_FIELDS.index(f)]) for f in _GRAD_FIELDS] + \
-        [like(poses)]
+        [like(poses), like(x), x.new_empty(3)]
 
 
 def _backward(ctx, gx, gv):
@@ -206,7 +211,10 @@ def _backward(ctx, gx, gv):
     g_model: list = [None] * len(model)
     for j, name in enumerate(_GRAD_FIELDS):
         g_model[MODEL_FIELDS.index(name)] = out[4 + j]
-    return [out[0], out[1], out[2], None], (out[3] if ctx.has_ext else None), g_model, out[11], \
+    for j, name in enumerate(_LAW_FIELDS):
+        i = MODEL_FIELDS.index(name)
+        g_model[i] = out[13][j].reshape(model[i].shape)
+    return [out[0], out[1], out[2], out[12]], (out[3] if ctx.has_ext else None), g_model, out[11], \
         *([None] * len(ctx.settings))
 
 
@@ -216,18 +224,18 @@ frame_dynamics_diff_op.register_autograd(_backward, setup_context=_setup_context
 # -- entry point --------------------------------------------------------------------------------
 def native_adjoint_supported(model: Model, coeffs: Coefficients, config: Config, x: torch.Tensor,
                              external_force: ExternalForce = None) -> bool:
-    """Whether a gradient frame's dynamics can run the native forward and adjoint: Hookean or no
-    integrity coupling, the angular couple (or none), a tensor external force (or none), float32 /
+    """Whether a gradient frame's dynamics can run the native forward and adjoint: the angular couple
+    (or no angular spring), a tensor external force (or none), float32 /
     float64 on CPU / CUDA, a rest shape without gradients, and the adjoint kernels built (built on
     first call; one warning when they cannot be)."""
-    if config.integrity_model == "nonhookean" or (config.angular and not config.angular_reaction):
+    if config.angular and not config.angular_reaction:
         return False
     if external_force is not None and not isinstance(external_force, torch.Tensor):
         return False
     if x.dtype not in NATIVE_DTYPES or x.device.type not in _KINDS or model.rest_positions.dtype != x.dtype:
         return False
     if any(getattr(model, f).requires_grad for f in ("rest_positions", "edge_rest_length", "bend_rest_length",
-                                                     "torsion_rest_length", "gravity")):
+                                                     "torsion_rest_length", "segment_length", "gravity")):
         return False
     return _native.native_ops(_KINDS[x.device.type]) is not None
 

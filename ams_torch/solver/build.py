@@ -135,9 +135,8 @@ _BACKENDS = {
 #: How each stage of a frame whose inputs require grad runs on a native simulator (forward and
 #: adjoint): reported by native_status()["gradients"].
 GRADIENT_STAGES = {
-    "dynamics": "native forward and adjoint (frame_adjoint_cpu / frame_adjoint_cuda) for the Hookean or no "
-                "integrity coupling and the angular couple; the non-Hookean law, the one-particle angular form "
-                "and a callable external force take the torch definition",
+    "dynamics": "native forward and adjoint (frame_adjoint_cpu / frame_adjoint_cuda); the one-particle angular "
+                "form (angular_reaction=False) and a callable external force take the torch definition",
     "hair_hair": "torch definition",
     "collisions": "torch definition",
     "finish": "torch definition",

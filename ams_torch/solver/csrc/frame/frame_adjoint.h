@@ -19,17 +19,21 @@
 //                       the right-hand side), v̄_pin = m λ_p − (A λ_f) on pinned rows;
 //     each term's derivative contracted with (λ_f, v'): the diagonal (m + Δt' γ), m v, gravity, the
 //                       external force, the edge / bend / torsion springs (and their geometric
-//                       stiffness), the Hookean integrity spring, the angular couple (force θ t̂ and
-//                       its implicit tangent κ/|e| (I − êêᵀ) with the ghost-velocity term);
+//                       stiffness), the integrity spring (Hookean, or the non-Hookean law with its
+//                       curve's transition, breaking point and soft ratio, its sag-free preload and
+//                       tangent), the angular couple (force θ t̂ and its implicit tangent
+//                       κ/|e| (I − êêᵀ) with the ghost-velocity term);
 //     ghosts y = R_a ḡ + t_a and w = (R_b ḡ + t_b − y)/Δt', pin targets R_b X̄ + t_b  → ḡ̄ and the
 //                       substep poses' (R, t) adjoints.
 //
 // Outputs per strand: x̄ and v̄ of the frame's input, ḡ̄ (ghost_rest), the external force's adjoint,
 // the adjoints of every coefficient array (mass, drag, edge / bend / torsion stiffness, integrity,
 // angular: the kernel takes coefficients per element as inputs, so how they come from Params does
-// not matter here) and of the M + 1 substep poses (R row-major, then t: 12 values each; the torch
-// side maps them to the frame's two head poses). The non-Hookean law and the one-particle angular
-// form are not differentiated here (the step keeps the torch definition for them).
+// not matter here), of the non-Hookean curve's three numbers and the sag-free offset, and of the
+// M + 1 substep poses (R row-major, then t: 12 values each; the torch side maps them to the frame's
+// two head poses). The one-particle angular form is not differentiated here (the step keeps the
+// torch definition for it). Ties of min / max in the non-Hookean curve split the gradient in halves
+// as torch.minimum does; its clamp passes it at the kink (e = transition), as torch.clamp does.
 //
 // Conventions of the definition that the adjoint reproduces: safe_normalize's masked directions
 // have zero derivative; the angular couple at alignment (|perp| = 0, cos > 0) has the derivative
@@ -59,6 +63,8 @@ struct Adjoint {
   Lanes<V, T> stiffb[3];              // N − k
   Lanes<V, T> angularb;               // N − 1
   Lanes<V, T> poseb;                  // 12 (M + 1)
+  Lanes<V, T> sagb;                   // 3 N: adjoint of sag_offset (non-Hookean law)
+  Lanes<V, T> lawb;                   // 3: adjoints of the transition, breaking point and soft ratio
 };
 
 template <class V>
@@ -316,6 +322,84 @@ AMS_HD void angular_adjoint(const Strand<V, T>& s, const Adjoint<V, T>& adj, con
   }
 }
 
+// The non-Hookean integrity spring of every particle (frame.h::add_integrity, forces.
+// integrity_force_nonhookean): force κ off + κ L φ(e) û with the anchor y − off (off = R_a sag), its
+// tangent Δt'² κ (φ' ûûᵀ + φ/e (I − ûûᵀ)) and ghost-velocity term, contracted with (λ_f, v');
+// the curve's adjoints (transition, breaking, soft ratio) into adj.lawb, R_a's into pa_b.
+template <class V, class T>
+AMS_HD void integrity_nonhookean_adjoint(const Strand<V, T>& s, const Adjoint<V, T>& adj, const Material<T>& mat,
+                                         const Lanes<V, T>& vnew, const T* pose_a, T h, T h2, V pa_b[12]) {
+  const V zero = splat<V, T>(T(0)), one = splat<V, T>(T(1)), half = splat<V, T>(T(0.5));
+  const T tr = mat.transition, span = mat.breaking - mat.transition, soft = T(1) - mat.soft_ratio;
+  V tb = zero, bb = zero, rb = zero;
+  for (int64_t i = 0; i < s.n; ++i) {
+    V xi[3], y[3], w[3], vp[3], l[3], sag[3], off[3], d[3], u[3], dist, z[3];
+    load3(s.x, i, xi);
+    load3(adj.ya, i, y);
+    load3(s.ghost_velocity, i, w);
+    load3(vnew, i, vp);
+    load3(adj.lam, i, l);
+    load3(s.sag_offset, i, sag);
+    rotate(pose_a, sag, off);
+    for (int q = 0; q < 3; ++q) {
+      d[q] = (y[q] - off[q]) - xi[q];
+      z[q] = w[q] - vp[q];
+    }
+    safe_normalize(d, u, dist, T(1e-20));
+    const V L = s.segment[i], kI = s.integrity[i];
+    const V e = dist / L;
+    // the curve (forces.integrity_elongation_law)
+    const V em = e - tr;
+    const V over = lane_max(em, zero);
+    const V over_c = lane_min(over, splat<V, T>(span));
+    const V below = lane_min(e, splat<V, T>(tr));
+    const V phi = below + over_c - soft * over_c * over_c / (T(2) * span);
+    const V slope = T(1) - soft * over_c / span;
+    const auto stretched = e > T(0);
+    const V safe_e = select(stretched, e, one);
+    const V secant = select(stretched, phi / safe_e, one);
+    // σ = Δt' λ·(κ off + κ L φ û) + Δt'² κ [secant λ·z + (slope − secant)(λ·û)(z·û)]
+    const V P = dot3(l, u), Zu = dot3(z, u), LZ = dot3(l, z);
+    adj.integrityb[i] = adj.integrityb[i] + (h * dot3(l, off) + h * L * phi * P +
+                                             h2 * (secant * LZ + (slope - secant) * P * Zu));
+    V phib = h * kI * L * P;
+    const V slopeb = h2 * kI * P * Zu, secb = h2 * kI * (LZ - P * Zu);
+    phib = phib + select(stretched, secb / safe_e, zero);
+    V eb = select(stretched, -(secb * phi) / (safe_e * safe_e), zero);
+    const V overcb = phib * slope - slopeb * soft / span;
+    V spanb = phib * soft * over_c * over_c / (T(2) * span * span) + slopeb * soft * over_c / (span * span);
+    rb = rb + phib * over_c * over_c / (T(2) * span) + slopeb * over_c / span;
+    // over_c = min(over, span), below = min(e, t): ties split in halves (torch.minimum)
+    const auto o_lt = over < span, o_eq = over == span;
+    const V overb = select(o_lt, overcb, select(o_eq, half * overcb, zero));
+    spanb = spanb + select(o_lt, zero, select(o_eq, half * overcb, overcb));
+    const V emb = select(em >= T(0), overb, zero); // over = clamp(e − t, min=0)
+    const auto b_lt = e < tr, b_eq = e == tr;
+    eb = eb + emb + select(b_lt, phib, select(b_eq, half * phib, zero));
+    tb = tb - emb + select(b_lt, zero, select(b_eq, half * phib, phib)) - spanb;
+    bb = bb + spanb;
+    // e = dist / L, û: the direction of d = (y − off) − x
+    V ub[3], db[3];
+    for (int q = 0; q < 3; ++q) ub[q] = h * kI * L * phi * l[q] + h2 * kI * (slope - secant) * (Zu * l[q] + P * z[q]);
+    safe_normalize_adjoint<V, T>(u, dist, ub, eb / L, db);
+    const auto at_anchor = dist == T(0); // forces._aligned_derivative: κ φ'(0) ∂d there
+    V offb[3], sb[3];
+    for (int q = 0; q < 3; ++q) {
+      db[q] = db[q] + select(at_anchor, h * kI * slope * l[q], zero);
+      adj.wb[3 * i + q] = adj.wb[3 * i + q] + h2 * kI * (secant * l[q] + (slope - secant) * P * u[q]);
+      adj.xb_new[3 * i + q] = adj.xb_new[3 * i + q] - db[q];
+      adj.yb[3 * i + q] = adj.yb[3 * i + q] + db[q];
+      offb[q] = h * kI * l[q] - db[q];
+    }
+    rotate_t(pose_a, offb, sb);
+    add3(adj.sagb, i, sb);
+    pose_outer(pa_b, offb, sag, false);
+  }
+  adj.lawb[0] = adj.lawb[0] + tb;
+  adj.lawb[1] = adj.lawb[1] + bb;
+  adj.lawb[2] = adj.lawb[2] + rb;
+}
+
 // The adjoint of substep k (frame.h::advance from pose_a to pose_b): reads adj.xb, adj.vb (the
 // adjoints of x_{k+1}, v_{k+1}) and the stored states; leaves the adjoints of x_k, v_k there.
 template <class V, class T>
@@ -399,6 +483,7 @@ AMS_HD void substep_adjoint(const Strand<V, T>& s, const Adjoint<V, T>& adj, con
       }
     }
   }
+  if (cfg.integrity == kIntegrityNonHookean) integrity_nonhookean_adjoint(s, adj, mat, vnew, pose_a, h, h2, pa_b);
   springs_adjoint<1>(s, adj, vnew, h, h2, cfg.geometric_stiffness);
   springs_adjoint<2>(s, adj, vnew, h, h2, cfg.geometric_stiffness);
   springs_adjoint<3>(s, adj, vnew, h, h2, cfg.geometric_stiffness);
@@ -448,8 +533,10 @@ AMS_HD void zero_adjoint(const Strand<V, T>& s, const Adjoint<V, T>& adj, int su
   const V zero = splat<V, T>(T(0));
   for (int64_t e = 0; e < 3 * n; ++e) {
     adj.gb[e] = zero;
+    adj.sagb[e] = zero;
     if (s.has_ext) adj.extb[e] = zero;
   }
+  for (int e = 0; e < 3; ++e) adj.lawb[e] = zero;
   for (int64_t i = 0; i < n; ++i) adj.massb[i] = adj.dragb[i] = adj.integrityb[i] = zero;
   for (int k = 0; k < 3; ++k)
     for (int64_t i = 0; i + 1 + k < n; ++i) adj.stiffb[k][i] = zero;

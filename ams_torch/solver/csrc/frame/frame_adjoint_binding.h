@@ -15,7 +15,8 @@
 //     x_bar, v_bar (..., S, N, 3): adjoints of frame_posed's outputs. Returns the adjoints
 //     [x (..., S, N, 3), v, ghost_rest, external_force (like x, or an empty tensor without one),
 //      mass (B, S, N), drag (B, S, N), edge (B, S, N-1), bend (B, S, N-2), torsion (B, S, N-3),
-//      integrity (B, S, N), angular (B, S, N-1), poses (B, S, M+1, 12)], B the flattened scenes:
+//      integrity (B, S, N), angular (B, S, N-1), poses (B, S, M+1, 12), sag_offset (like x),
+//      the non-Hookean transition, breaking point and soft ratio (B, S, 3)], B the flattened scenes:
 //     the per-strand arrays are per scene (the caller sums over scenes and strands as the
 //     inputs broadcast).
 #pragma once
@@ -43,7 +44,7 @@ constexpr const char* kFrameAdjointSchema =
 
 enum AdjointIndex {
   kXBar, kVBar, kGhostBar, kExtBar, kMassBar, kDragBar, kEdgeBar, kBendBar, kTorsionBar, kIntegrityBar, kAngularBar,
-  kPoseBar, kAdjointCount
+  kPoseBar, kSagBar, kLawBar, kAdjointCount
 };
 
 // Validated inputs: the frame's (check_frame_inputs) and the substep poses, contiguous.
@@ -61,7 +62,6 @@ inline PosedInputs check_posed_inputs(const char* op, at::TensorList state, cons
   TORCH_CHECK(substeps >= 1, op, ": substeps must be >= 1, got ", substeps);
   TORCH_CHECK(poses.dim() == 3 && poses.size(1) == substeps + 1 && poses.size(2) == kPoseElems, op,
               ": poses must have shape (P, substeps + 1, 12), got ", poses.sizes());
-  TORCH_CHECK(integrity_model != kIntegrityNonHookean, op, ": the non-Hookean integrity law has no native adjoint");
   TORCH_CHECK(angular_reaction || !angular, op, ": the one-particle angular form has no native adjoint");
   // the frame's own checks, with the first and last substep poses as the frame's two poses
   const at::Tensor p = poses.contiguous();
@@ -102,6 +102,8 @@ inline std::vector<at::Tensor> adjoint_outputs(const PosedInputs& in) {
   out[kIntegrityBar] = at::zeros({B, S, N}, opts);
   out[kAngularBar] = at::zeros({B, S, N - 1}, opts);
   out[kPoseBar] = at::empty({B, S, M + 1, kPoseElems}, opts);
+  out[kSagBar] = at::empty(x.sizes(), opts);
+  out[kLawBar] = at::empty({B, S, 3}, opts);
   return out;
 }
 
@@ -118,7 +120,7 @@ inline void check_adjoint_seeds(const char* op, const PosedInputs& in, const at:
 template <class T>
 struct AdjointPointers {
   const T *xb_in, *vb_in;
-  T *xb, *vb, *gb, *extb, *massb, *dragb, *stiffb[3], *integrityb, *angularb, *poseb;
+  T *xb, *vb, *gb, *extb, *massb, *dragb, *stiffb[3], *integrityb, *angularb, *poseb, *sagb, *lawb;
 };
 
 template <class T>
@@ -138,6 +140,8 @@ AdjointPointers<T> adjoint_pointers(std::vector<at::Tensor>& out, const at::Tens
   p.integrityb = out[kIntegrityBar].mutable_data_ptr<T>();
   p.angularb = out[kAngularBar].mutable_data_ptr<T>();
   p.poseb = out[kPoseBar].mutable_data_ptr<T>();
+  p.sagb = out[kSagBar].mutable_data_ptr<T>();
+  p.lawb = out[kLawBar].mutable_data_ptr<T>();
   return p;
 }
 

@@ -7,7 +7,7 @@
 // copies its strands' inputs into a per-thread scratch in the strand-interleaved layout (value e of
 // lane l at e·W + l), runs the per-strand routine on W-lane vectors, and copies the results out.
 // The adjoint's scratch adds the states of the M + 1 substep starts and the adjoint arrays
-// (about (6 M + 90) N W values: 28 KB per group of 8 float strands at N = 32, M = 1).
+// (about (6 M + 95) N W values: 28 KB per group of 8 float strands at N = 32, M = 1).
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
@@ -34,7 +34,7 @@ struct AdjointLayout {
   int64_t rest, mass, drag, stiffness[3], rest_length[3], integrity, angular, segment, pinned;
   int64_t x, v, ghost_rest, sag_offset, ext, a, b, force, ghost, ghost_velocity;
   int64_t hist_x, hist_v, xb, vb, xb_new, vb_new, lam, ya, yb, wb, vpb, gb, extb, massb, dragb, integrityb;
-  int64_t stiffb[3], angularb, poseb, total;
+  int64_t stiffb[3], angularb, poseb, sagb, lawb, total;
   AdjointLayout(int64_t n, int64_t m) {
     int64_t o = 0;
     auto take = [&o](int64_t count) {
@@ -61,6 +61,8 @@ struct AdjointLayout {
     for (int k = 0; k < 3; ++k) stiffb[k] = take(n - 1 - k);
     angularb = take(n - 1);
     poseb = take(int64_t(kPoseElems) * (m + 1));
+    sagb = take(3 * n);
+    lawb = take(3);
     total = o;
   }
 };
@@ -80,6 +82,7 @@ void run_posed(const FrameArgs<T>& args, const FrameSettings& cfg, const T* pose
   const AdjointLayout lay(N, M);
   const int64_t groups = (S + W - 1) / W;
   const bool has_ext = args.external_force != nullptr;
+  const bool nonhookean = cfg.integrity == kIntegrityNonHookean;
   const size_t bytes = size_t((ap ? lay.total : lay.hist_x) * W) * sizeof(T);
 
   at::parallel_for(0, B * groups, 1, [&](int64_t t_begin, int64_t t_end) {
@@ -129,6 +132,8 @@ void run_posed(const FrameArgs<T>& args, const FrameSettings& cfg, const T* pose
       for (int k = 0; k < 3; ++k) adj.stiffb[k] = view(lay.stiffb[k]);
       adj.angularb = view(lay.angularb);
       adj.poseb = view(lay.poseb);
+      adj.sagb = view(lay.sagb);
+      adj.lawb = view(lay.lawb);
     }
 
     for (int64_t task = t_begin; task < t_end; ++task) {
@@ -154,9 +159,11 @@ void run_posed(const FrameArgs<T>& args, const FrameSettings& cfg, const T* pose
       }
       if (cfg.integrity != kIntegrityNone) gather_model(args.integrity, N, lay.integrity);
       if (cfg.angular) gather_model(args.angular, N - 1, lay.angular);
+      if (nonhookean) gather_model(args.segment_length, N, lay.segment);
       gather_scene(args.x, lay.x);
       gather_scene(args.v, lay.v);
       gather_scene(args.ghost_rest, lay.ghost_rest);
+      if (nonhookean) gather_scene(args.sag_offset, lay.sag_offset);
       if (has_ext) gather_scene(args.external_force, lay.ext);
       T* pinned = sc + lay.pinned * W;
       int64_t pinned_max = 0;
@@ -192,6 +199,8 @@ void run_posed(const FrameArgs<T>& args, const FrameSettings& cfg, const T* pose
       scatter(ap->integrityb, N, lay.integrityb);
       scatter(ap->angularb, N - 1, lay.angularb);
       scatter(ap->poseb, (M + 1) * kPoseElems, lay.poseb);
+      scatter(ap->sagb, 3 * N, lay.sagb);
+      scatter(ap->lawb, 3, lay.lawb);
     }
   });
 }

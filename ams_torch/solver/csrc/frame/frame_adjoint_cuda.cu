@@ -22,10 +22,10 @@ constexpr int kAdjointThreads = 64; // (scene, strand) threads per block: the ad
 // Workspace arrays (offsets in elements of T; model arrays hold count × strands values, scene
 // arrays count × scenes × strands).
 struct AdjointOffsets {
-  int64_t rest, mass, drag, stiffness[3], rest_length[3], integrity, angular;
-  int64_t x, v, ghost_rest, ext, a, b, force, ghost, ghost_velocity;
+  int64_t rest, mass, drag, stiffness[3], rest_length[3], integrity, angular, segment;
+  int64_t x, v, ghost_rest, sag_offset, ext, a, b, force, ghost, ghost_velocity;
   int64_t hist_x, hist_v, xb, vb, xb_new, vb_new, lam, ya, yb, wb, vpb, gb, extb, massb, dragb, integrityb;
-  int64_t stiffb[3], angularb, poseb, total;
+  int64_t stiffb[3], angularb, poseb, sagb, lawb, total;
   AdjointOffsets(int64_t B, int64_t S, int64_t N, int64_t M) {
     const int64_t G = B * S;
     int64_t o = 0;
@@ -41,7 +41,8 @@ struct AdjointOffsets {
     for (int k = 0; k < 3; ++k) rest_length[k] = take((N - 1 - k) * S);
     integrity = take(N * S);
     angular = take((N - 1) * S);
-    for (int64_t* f : {&x, &v, &ghost_rest, &ext}) *f = take(3 * N * G);
+    segment = take(N * S);
+    for (int64_t* f : {&x, &v, &ghost_rest, &sag_offset, &ext}) *f = take(3 * N * G);
     a = take(banded::kRowElems * N * G);
     for (int64_t* f : {&b, &force, &ghost, &ghost_velocity}) *f = take(3 * N * G);
     hist_x = take(3 * N * (M + 1) * G);
@@ -51,6 +52,8 @@ struct AdjointOffsets {
     for (int k = 0; k < 3; ++k) stiffb[k] = take((N - 1 - k) * G);
     angularb = take((N - 1) * G);
     poseb = take(int64_t(kPoseElems) * (M + 1) * G);
+    sagb = take(3 * N * G);
+    lawb = take(3 * G);
     total = o;
   }
 };
@@ -76,7 +79,7 @@ __global__ void __launch_bounds__(kAdjointThreads)
   }
   st.integrity = per_strand(off.integrity);
   st.angular = per_strand(off.angular);
-  st.segment = per_strand(off.integrity); // read by the non-Hookean law only (not differentiated here)
+  st.segment = per_strand(off.segment);
   int64_t p = args.num_pinned[s];
   p = p < 0 ? 0 : (p > N ? N : p);
   st.pinned = T(p);
@@ -84,7 +87,7 @@ __global__ void __launch_bounds__(kAdjointThreads)
   st.x = per_scene(off.x);
   st.v = per_scene(off.v);
   st.ghost_rest = per_scene(off.ghost_rest);
-  st.sag_offset = per_scene(off.ghost_rest); // (non-Hookean only)
+  st.sag_offset = per_scene(off.sag_offset);
   st.ext = per_scene(off.ext);
   st.has_ext = args.external_force != nullptr;
   st.a = per_scene(off.a);
@@ -119,6 +122,8 @@ __global__ void __launch_bounds__(kAdjointThreads)
   for (int k = 0; k < 3; ++k) adj.stiffb[k] = per_scene(off.stiffb[k]);
   adj.angularb = per_scene(off.angularb);
   adj.poseb = per_scene(off.poseb);
+  adj.sagb = per_scene(off.sagb);
+  adj.lawb = per_scene(off.lawb);
   strand_frame_adjoint(st, adj, mat, cfg, scene_poses);
 }
 
@@ -147,9 +152,12 @@ cudaError_t frame_adjoint_cuda(const FrameArgs<T>& args, const FrameSettings& cf
   }
   if (cfg.integrity != kIntegrityNone) ok &= in.add(args.integrity, w + off.integrity, S, N);
   if (cfg.angular) ok &= in.add(args.angular, w + off.angular, S, N - 1);
+  const bool nonhookean = cfg.integrity == kIntegrityNonHookean;
+  if (nonhookean) ok &= in.add(args.segment_length, w + off.segment, S, N);
   ok &= in.add(args.x, w + off.x, G, 3 * N);
   ok &= in.add(args.v, w + off.v, G, 3 * N);
   ok &= in.add(args.ghost_rest, w + off.ghost_rest, G, 3 * N);
+  if (nonhookean) ok &= in.add(args.sag_offset, w + off.sag_offset, G, 3 * N);
   if (args.external_force != nullptr) ok &= in.add(args.external_force, w + off.ext, G, 3 * N);
   if (adjoint != nullptr) {
     ok &= in.add(adjoint->xb_in, w + off.xb, G, 3 * N);
@@ -178,6 +186,8 @@ cudaError_t frame_adjoint_cuda(const FrameArgs<T>& args, const FrameSettings& cf
     ok &= back.add(w + off.integrityb, adjoint->integrityb, N, G);
     ok &= back.add(w + off.angularb, adjoint->angularb, N - 1, G);
     ok &= back.add(w + off.poseb, adjoint->poseb, int64_t(kPoseElems) * (M + 1), G);
+    ok &= back.add(w + off.sagb, adjoint->sagb, 3 * N, G);
+    ok &= back.add(w + off.lawb, adjoint->lawb, 3, G);
   }
   if (!ok) return cudaErrorInvalidConfiguration;
   launch_transpose(back, stream);

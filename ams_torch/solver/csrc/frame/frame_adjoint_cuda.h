@@ -16,11 +16,12 @@ extern "C++" {
 
 // Raw pointers of the adjoint's seeds and outputs (frame_adjoint_binding.h's layout): per scene and
 // strand x̄, v̄, ḡ, ext̄ (B, S, N, 3; ext̄ null without an external force), mass̄, draḡ, integritȳ
-// (B, S, N), stiffness̄ k (B, S, N − 1 − k), angular̄ (B, S, N − 1), poses̄ (B, S, M + 1, 12).
+// (B, S, N), stiffness̄ k (B, S, N − 1 − k), angular̄ (B, S, N − 1), poses̄ (B, S, M + 1, 12), sag̅
+// (B, S, N, 3), the non-Hookean curve's (B, S, 3).
 template <class T>
 struct AdjointBuffers {
   const T *xb_in, *vb_in;
-  T *xb, *vb, *gb, *extb, *massb, *dragb, *stiffb[3], *integrityb, *angularb, *poseb;
+  T *xb, *vb, *gb, *extb, *massb, *dragb, *stiffb[3], *integrityb, *angularb, *poseb, *sagb, *lawb;
 };
 
 // Elements of T of workspace for B scenes of S strands of N particles and M substeps: the

@@ -47,7 +47,8 @@ void launch(const char* op, const PosedInputs& in, at::Tensor* x, at::Tensor* v,
     }
     const AdjointPointers<scalar_t> p = adjoint_pointers<scalar_t>(*out, *xb, *vb);
     AdjointBuffers<scalar_t> buf{p.xb_in, p.vb_in, p.xb, p.vb, p.gb, p.extb, p.massb, p.dragb,
-                                 {p.stiffb[0], p.stiffb[1], p.stiffb[2]}, p.integrityb, p.angularb, p.poseb};
+                                 {p.stiffb[0], p.stiffb[1], p.stiffb[2]}, p.integrityb, p.angularb, p.poseb,
+                                 p.sagb, p.lawb};
     err = frame_adjoint_cuda<scalar_t>(args, cfg, poses, in.pose_scenes, nullptr, nullptr, &buf,
                                        workspace.mutable_data_ptr<scalar_t>(), stream);
   });
