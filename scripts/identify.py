@@ -24,6 +24,7 @@ with ``torch.autograd.graph.saved_tensors_hooks``.
     .venv/bin/python scripts/identify.py                  # → docs/identification.{md,json}, docs/identification*.png
     .venv/bin/python scripts/identify.py --quick          # smoke run, a few minutes
     .venv/bin/python scripts/identify.py --render-only    # the page and plots again from the JSON
+    .venv/bin/python scripts/identify.py --memory-only    # rerun the memory rows only, keep the rest of the JSON
     .venv/bin/python scripts/identify.py --cases shake coaster --max-evals 20
 """
 from __future__ import annotations
@@ -341,8 +342,9 @@ def render(results: dict, out: Path) -> None:
             L.append(f"| {label} | {len(rows)} | {rows[0]['t']}–{rows[-1]['t']} | {best['t']} ({best['loss']:.3g} mm²) | "
                      f"{ad} | {flips(sec)} |")
         L.append("")
+    rerun = f"These rows were rerun by `{meta['memory_command']}`. " if meta.get("memory_command") else ""
     L += ["## Memory: one loss + backward, with and without checkpointing", "",
-          "Each row is a fresh subprocess (`scripts/identify.py --memory-probe CASE --probe-checkpoint MODE`) that "
+          rerun + "Each row is a fresh subprocess (`scripts/identify.py --memory-probe CASE --probe-checkpoint MODE`) that "
           "runs one rollout + backward at the case's start values after a 2-frame warm-up. *Peak rise*: the "
           "high-water mark of resident memory (VmHWM, reset through `/proc/self/clear_refs` just before the "
           "rollout) minus the resident size before it (glibc keeps freed heap, so this is the peak of what the "
@@ -494,6 +496,8 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="fewer strands, frames and iterations")
     ap.add_argument("--out", default=str(REPO / "docs"))
     ap.add_argument("--render-only", action="store_true", help="rewrite the page and plots from the JSON")
+    ap.add_argument("--memory-only", action="store_true",
+                    help="rerun the memory probes of the JSON's cases, keep its other results, rewrite the page")
     ap.add_argument("--memory-probe", help=argparse.SUPPRESS)
     ap.add_argument("--probe-checkpoint", default="every frame", choices=CHECKPOINT_MODES, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -502,6 +506,16 @@ def main(argv=None) -> int:
         print(json.dumps(memory_probe(args.memory_probe, args.probe_checkpoint, args.quick)))
         return 0
     out = Path(args.out)
+    if args.memory_only:
+        results = json.loads((out / "identification.json").read_text())
+        names = dict.fromkeys(r["case"] for r in results["memory"])
+        results["memory"] = [memory_in_subprocess(name, ck, args.quick) for name in names for ck in CHECKPOINT_MODES]
+        results["meta"]["memory_command"] = ("python scripts/identify.py " + shown_args(argv)).strip()
+        results["narrative"] = kept_discussion(out / "identification.md")
+        (out / "identification.json").write_text(json.dumps(results, indent=1))
+        render(results, out)
+        print(f"reran the memory rows of {out / 'identification.md'}")
+        return 0
     if args.render_only:
         results = json.loads((out / "identification.json").read_text())
         results["narrative"] = kept_discussion(out / "identification.md")
