@@ -41,8 +41,10 @@ class Simulator(torch.nn.Module):
             to make ``nn.Parameter`` s of the module, for ``torch.optim.Adam(sim.parameters())``.
         backend: "torch" (the differentiable definition), "native" (the fused kernels, see
             :mod:`ams_torch.sim.native`; an error when they cannot be built) or "auto" (the default:
-            native when they can be built, torch otherwise). Either way, a frame whose inputs
-            require grad takes the torch definition, so gradients stay exact.
+            native when they can be built, torch otherwise). A frame whose inputs require grad
+            runs its strand dynamics on the native kernel with its native adjoint
+            (:mod:`ams_torch.sim.native_grad`) and its other stages on the torch definition
+            (``ams_torch.native_status()["gradients"]``); gradients equal the torch definition's.
 
     The fixed data is ``sim.model`` (a registered submodule: ``.to()``, ``.double()``,
     ``state_dict()`` work), the frozen settings ``sim.config``; ``sim.step`` builds a
