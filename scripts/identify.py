@@ -235,7 +235,8 @@ def run_scale(args, log=print) -> dict:
            "optimizer": args.scale_optimizer + (f" (lr {args.scale_lr:g} → {args.scale_lr / 5:g})"
                                                 if args.scale_optimizer == "adam" else " (strong Wolfe)"),
            "evaluations": hist["iterations"], "wall_s": hist["wall_s"], "s_per_evaluation": hist["s_per_iteration"],
-           "target_s": t_target, "fd": {"rows": fd["directions"], "worst_rel": fd["worst_rel"], "s": t_fd},
+           "target_s": t_target, "fd": {"rows": [{k: v for k, v in r.items() if k != "d"} for r in fd["directions"]],
+                                        "worst_rel": fd["worst_rel"], "s": t_fd},  # (not the 1,001-value directions)
            "loss": hist["loss"], "final_loss": hist["final_loss"],
            "integrity_rate": {"true": spec["true"]["integrity_rate"], "start": spec["start"]["integrity_rate"],
                               "fitted": hist["final_values"]["integrity_rate"]},
