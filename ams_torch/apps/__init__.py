@@ -1,12 +1,13 @@
 """Applications built on the library: head motions, scene files, dataset recipes and generation,
-dataset reading and validation, rendering, and the ``ams-torch`` command line.
+dataset reading and validation, rendering, parameter identification through rollouts, and the
+``ams-torch`` command line.
 
 The top layer: it may import every other subpackage. Its modules load on first access
 (``ams_torch.apps.scene``), so ``import ams_torch`` stays light (no h5py, no matplotlib).
 """
 import importlib
 
-_MODULES = ("motion", "scene", "recipe", "datagen", "data", "render", "cli")
+_MODULES = ("motion", "scene", "recipe", "datagen", "data", "render", "cli", "identify")
 
 __all__ = list(_MODULES)
 

@@ -250,7 +250,13 @@ class SDFGrid:
         out = out.reshape(4, -1).transpose(0, 1).reshape(points.shape[:-1] + (4,))
         dist_out = outside.norm(dim=-1)
         sigma = out[..., 0] + dist_out
-        grad = out[..., 1:] + outside / dist_out.clamp_min(1e-30)[..., None]
+        # the unit direction away from the box, zero inside it. Masked, not ``outside / max(|outside|,
+        # 1e-30)``: inside the box that form back-propagates 1e30 × (an exact zero), and the two huge
+        # opposite terms of ``raw − coords`` cancel the grid gradient's own contribution (the normal's
+        # autograd gradient was exactly zero inside the box; tests/test_grad_colliders.py)
+        away = dist_out > 0
+        safe = torch.where(away, dist_out, torch.ones_like(dist_out))
+        grad = out[..., 1:] + torch.where(away[..., None], outside / safe[..., None], torch.zeros_like(outside))
         norm = grad.norm(dim=-1, keepdim=True)
         up = torch.zeros_like(grad)
         up[..., 1] = 1

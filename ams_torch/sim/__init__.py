@@ -9,6 +9,7 @@ from ams_torch.sim.params import Params
 from ams_torch.sim.simulator import Simulator
 from ams_torch.sim.state import Config, Control, State
 from ams_torch.sim.step import SimulationDiverged, check_state, step
+from ams_torch.sim.rollout import Rollout, rollout
 
 __all__ = ["Params", "Simulator", "Model", "State", "Control", "Config", "step", "check_state", "SimulationDiverged",
-           "Coefficients", "coefficients"]
+           "Coefficients", "coefficients", "rollout", "Rollout"]

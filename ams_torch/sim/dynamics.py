@@ -12,6 +12,8 @@ their targets).
 """
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 from torch.profiler import record_function
 
@@ -84,7 +86,7 @@ def substep_system(model: Model, coeffs: Coefficients, config: Config, x: torch.
 
 def frame_dynamics(model: Model, coeffs: Coefficients, config: Config, x: torch.Tensor, v: torch.Tensor,
                    ghost_rest: torch.Tensor, sag_offset: torch.Tensor, pose0: Pose, pose1: Pose, hermite: bool,
-                   time: torch.Tensor, external_force: ExternalForce = None) -> tuple:
+                   time: torch.Tensor, external_force: ExternalForce = None, poses: Optional[list] = None) -> tuple:
     """One frame of strand dynamics: M substeps and inextensibility (plain torch, differentiable).
 
     Args:
@@ -96,6 +98,8 @@ def frame_dynamics(model: Model, coeffs: Coefficients, config: Config, x: torch.
         hermite: whether substep poses use cubic Hermite translation (both ends had velocities).
         time: () s at the start of the frame (for a callable external force).
         external_force: see :data:`~ams_torch.sim.state.ExternalForce`.
+        poses: the M + 1 substep poses (default :func:`substep_poses` of pose0, pose1; the native
+            adjoint's op gives them, computed in torch so that their gradients reach the frame's poses).
     Returns:
         (x, v): (..., S, N, 3) after the substeps and follow-the-leader.
     """
@@ -103,7 +107,7 @@ def frame_dynamics(model: Model, coeffs: Coefficients, config: Config, x: torch.
     m_sub = config.substeps
     h = dt / m_sub
     pinned = model.pinned[..., None]  # (S, N, 1)
-    poses = substep_poses(pose0, pose1, hermite, m_sub, dt)
+    poses = substep_poses(pose0, pose1, hermite, m_sub, dt) if poses is None else poses
     y_a = poses[0].to_world(ghost_rest)
     nonhookean = config.nonhookean
     offset = poses[0].rotate(sag_offset) if nonhookean else None
@@ -119,5 +123,5 @@ def frame_dynamics(model: Model, coeffs: Coefficients, config: Config, x: torch.
         if nonhookean:
             offset = pb.rotate(sag_offset)
     if config.inextensibility:
-        x, v = inextensibility(model, config, x, v, pose1, dt)
+        x, v = inextensibility(model, config, x, v, poses[-1], dt)  # pose1's rotation
     return x, v

@@ -45,6 +45,20 @@ def _pad_pairs(f: torch.Tensor, k: int, front: bool) -> torch.Tensor:
     return F.pad(f, pad)
 
 
+def _aligned_derivative(kappa: torch.Tensor, d: torch.Tensor, where: torch.Tensor) -> torch.Tensor:
+    """An exact zero whose derivative is ``κ ∂d`` where ``where`` (..., M) holds, zero elsewhere.
+
+    A term ``κ c(|d|) d`` with c → 1 as d → 0 (the angular spring's ``κ θ t̂ = κ (θ / sin θ) perp``,
+    the non-Hookean law's ``κ L φ(e) d̂ = κ φ'(0) d`` near the anchor) is smooth at d = 0, but written
+    with :func:`safe_normalize` its autograd derivative there is zero (the direction is zeroed with
+    its gradient): at the rest state, where particles sit on their ghosts' directions and anchors,
+    that dropped ``κ ∂d`` (the gradient with respect to x₀ was half the finite differences'). Adding
+    this term restores it and changes no forward value (``d − d.detach()`` is an exact zero).
+    kappa: broadcastable to (..., M) (a scalar, (S, 1) or (S, M)); d: (..., M, 3). Returns (..., M, 3)."""
+    k = kappa[..., None] if kappa.dim() > 0 else kappa
+    return torch.where(where[..., None], k * (d - d.detach()), torch.zeros_like(d))
+
+
 def spring_forces(x: torch.Tensor, rest_length: torch.Tensor, stiffness, k: int, geometric: bool = False):
     """Linear springs between particles i and i+k (edge k=1, bending k=2, torsion k=3; SPEC §2).
 
@@ -125,7 +139,7 @@ def angular_force(x: torch.Tensor, ghost: torch.Tensor, stiffness, reaction: boo
     t_hat, sin = safe_normalize(perp, eps=eps * eps)
     theta = torch.atan2(sin, cos)
     kappa = torch.as_tensor(stiffness, dtype=x.dtype, device=x.device)
-    f = (kappa * theta)[..., None] * t_hat
+    f = (kappa * theta)[..., None] * t_hat + _aligned_derivative(kappa, perp, (sin == 0) & (cos > 0))
     force = F.pad(f, (0, 0, 1, 0))
     if reaction:
         force = force - F.pad(f, (0, 0, 0, 1))
@@ -240,7 +254,8 @@ def integrity_force_nonhookean(x: torch.Tensor, anchor: torch.Tensor, preload: t
     unit, dist = safe_normalize(anchor - x)
     e = dist / segment_length
     phi, slope = integrity_elongation_law(e, transition, breaking, soft_ratio)
-    force = preload + (kappa * segment_length * phi)[..., None] * unit
+    force = preload + (kappa * segment_length * phi)[..., None] * unit + \
+        _aligned_derivative(kappa * slope, anchor - x, dist == 0)
     secant = torch.where(e > 0, phi / torch.where(e > 0, e, torch.ones_like(e)), torch.ones_like(e))
     eye = torch.eye(3, dtype=x.dtype, device=x.device)
     dd = unit[..., :, None] * unit[..., None, :]

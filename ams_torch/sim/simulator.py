@@ -43,8 +43,10 @@ class Simulator(torch.nn.Module):
             :mod:`ams_torch.sim.native`; an error naming the kernels that cannot be built) or "auto"
             (the default: native when they can be built, torch otherwise, one warning per backend
             that cannot). The kernels the configuration needs are built here, not in the first
-            step. Either way, a frame whose inputs require grad takes the torch definition, so
-            gradients stay exact.
+            step. A frame whose inputs require grad runs its strand dynamics on the native kernel
+            with its native adjoint (:mod:`ams_torch.sim.native_grad`) and its other stages on the
+            torch definition (``ams_torch.native_status()["gradients"]``); gradients equal the torch
+            definition's.
 
     The fixed data is ``sim.model`` (a registered submodule: ``.to()``, ``.double()``,
     ``state_dict()`` work), the frozen settings ``sim.config``; ``sim.step`` builds a

@@ -118,8 +118,9 @@ class Config:
         hair_hair: the hair–hair stage runs. colliders: number of colliders (0: no collision stage).
         max_relative_speed: m/s, the divergence guard's speed limit relative to the head.
         backend: "torch" (the differentiable definition) or "native" (the fused kernels of
-            :mod:`ams_torch.sim.native`, which keep the torch definition for a frame whose inputs
-            require grad); the simulator resolves its "auto" to one of them when it is built.
+            :mod:`ams_torch.sim.native`; a frame whose inputs require grad runs its dynamics on the
+            native forward and adjoint of :mod:`ams_torch.sim.native_grad` and its other stages on
+            the torch definition); the simulator resolves its "auto" to one of them when it is built.
     """
 
     dt: float

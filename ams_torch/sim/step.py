@@ -25,6 +25,7 @@ from ams_torch.sim.contact import collisions_world
 from ams_torch.sim.dynamics import frame_dynamics
 from ams_torch.sim.finish import native_finish, pin_and_speed
 from ams_torch.sim.native import native_collisions, native_frame_dynamics
+from ams_torch.sim.native_grad import native_frame_dynamics_diff
 from ams_torch.sim.model import Coefficients, Model, coefficients
 from ams_torch.sim.state import Config, Control, State
 from ams_torch.stages.collide import resolve_world_poses
@@ -127,7 +128,8 @@ def _needs_grad(state: State, coeffs: Coefficients, control: Control, pose: Pose
 
 def stage_backend(config: Config, state: State, coeffs: Coefficients, control: Control, pose: Pose) -> str:
     """"torch" when the config says so or an input requires grad (gradients stay exact on the torch
-    definition), else the config's "native" (SPEC §15)."""
+    definition; a native config's dynamics then run the native forward and adjoint, the other stages
+    the torch definition), else the config's "native" (SPEC §15)."""
     if config.backend == "torch" or _needs_grad(state, coeffs, control, pose):
         return "torch"
     return config.backend
@@ -160,11 +162,16 @@ def step(model: Model, state: State, control: Control, config: Config, timer=Non
     time = state.time if control.time is None else control.time
     backend = stage_backend(config, state, coeffs, control, pose1)
     native = backend == "native"  # the fused kernels (they keep the torch definition for what they cannot run)
+    # a gradient frame of a native simulator: the dynamics keep their fused kernel, with its native
+    # adjoint (sim/native_grad.py); the other stages take the torch definition
+    adjoint = not native and config.backend == "native"
     speed = None
     with stage("dynamics"):
         args = (model, coeffs, config, state.x, state.v, state.ghost_rest, state.sag_offset, pose0, pose1, hermite,
                 time, control.external_force)
-        if not native:
+        if adjoint:
+            x, v = native_frame_dynamics_diff(*args)
+        elif not native:
             x, v = frame_dynamics(*args)
         elif config.hair_hair or config.colliders:
             x, v = native_frame_dynamics(*args)

@@ -117,6 +117,24 @@ _BACKENDS = {
         "ams_torch_frame_cuda",
         "cuda",
     ),
+    "frame_adjoint_cpu": (
+        "ams_torch_frame_adjoint_cpu",
+        ("frame/frame_adjoint_cpu.cpp",),
+        ("banded/banded_cholesky.h", "banded/banded_simd.h", "banded/interleave.h", "banded/thread_scratch.h",
+         "frame/lanes.h", "frame/ftl.h", "frame/finish.h", "frame/frame.h", "frame/frame_binding.h",
+         "frame/frame_adjoint.h", "frame/frame_adjoint_binding.h"),
+        "ams_torch_frame_adjoint_cpu",
+        "cpu",
+    ),
+    "frame_adjoint_cuda": (
+        "ams_torch_frame_adjoint_cuda",
+        ("frame/frame_adjoint_cuda_binding.cpp", "frame/frame_adjoint_cuda.cu"),
+        ("banded/banded_cholesky.h", "frame/lanes.h", "frame/ftl.h", "frame/finish.h", "frame/frame.h",
+         "frame/frame_binding.h", "frame/frame_adjoint.h", "frame/frame_adjoint_binding.h",
+         "frame/frame_adjoint_cuda.h", "frame/transpose_cuda.cuh"),
+        "ams_torch_frame_adjoint_cuda",
+        "cuda",
+    ),
     "collide_cpu": (
         "ams_torch_collide_cpu",
         ("collide/collide_cpu.cpp",),
@@ -148,6 +166,17 @@ _SELFTEST = {
     ),
 }
 _ALL = {**_BACKENDS, **_SELFTEST, **emulation.emulated_specs({**_BACKENDS, **_SELFTEST})}
+
+#: How each stage of a frame whose inputs require grad runs on a native simulator (forward and
+#: adjoint): reported by native_status()["gradients"].
+GRADIENT_STAGES = {
+    "dynamics": "native forward and adjoint (frame_adjoint_cpu / frame_adjoint_cuda); the one-particle angular "
+                "form (angular_reaction=False) and a callable external force take the torch definition",
+    "hair_hair": "torch definition",
+    "collisions": "torch definition",
+    "finish": "torch definition",
+    "plastic_yield": "torch definition",
+}
 
 
 class NativeBuildWarning(RuntimeWarning):
@@ -233,7 +262,8 @@ def native_status(build: bool = False) -> dict:
         ``build_seconds`` (compile + load + smoke test, ~0 when cached), ``flags`` (compiler
         flags; for CUDA the architectures in ``TORCH_CUDA_ARCH_LIST=...``), ``notes`` (what the
         build changed, e.g. architectures added or left out) and ``device`` ("cpu", "cuda" or
-        "emulation").
+        "emulation"); ``gradients`` says, per stage, what a frame whose inputs require grad runs
+        (native kernels and adjoint, or the torch definition).
     """
     if build:
         for kind, spec in _BACKENDS.items():
@@ -247,6 +277,12 @@ def native_status(build: bool = False) -> dict:
                 st["reason"] = _static_reason(kind) or "not built yet: built on first use"
             st["device"] = _ALL[kind][4]
             out[kind] = st
+        grad = dict(GRADIENT_STAGES)
+        if not any(_st(k)["built"] for k in ("frame_adjoint_cpu", "frame_adjoint_cuda")):
+            adjoint = out["frame_adjoint_cpu"]["reason"]
+            grad["dynamics"] = grad["dynamics"] if adjoint.startswith("not built yet") else \
+                f"torch definition (the adjoint kernels did not build: {adjoint})"
+        out["gradients"] = grad
         return out
 
 
