@@ -131,7 +131,7 @@ _BACKENDS = {
         ("frame/frame_adjoint_cuda_binding.cpp", "frame/frame_adjoint_cuda.cu"),
         ("banded/banded_cholesky.h", "frame/lanes.h", "frame/ftl.h", "frame/finish.h", "frame/frame.h",
          "frame/frame_binding.h", "frame/frame_adjoint.h", "frame/frame_adjoint_binding.h",
-         "frame/frame_adjoint_cuda.h", "frame/transpose_cuda.cuh"),
+         "frame/frame_adjoint_cuda.h", "frame/transpose_cuda.cuh", "cuda_common/launch_cuda.cuh"),
         "ams_torch_frame_adjoint_cuda",
         "cuda",
     ),
