@@ -48,6 +48,17 @@ def temp_name(final: str) -> str:
     return os.path.join(folder, f".{base}.tmp{os.getpid()}{os.path.splitext(base)[1]}")
 
 
+def final_name(path: str) -> str:
+    """The final name a temporary stands for (``.x.h5.tmp12.h5`` or ``x.h5.tmp12`` → ``x.h5``);
+    any other path as it is."""
+    folder, base = os.path.split(path)
+    m = re.match(r"^(\.?)(.+?)\.tmp\d+", base)
+    if not m:
+        return path
+    name = m.group(2)
+    return os.path.join(folder, name) if m.group(1) or not name.startswith(".") else path
+
+
 def _alive(pid: int) -> bool:
     if pid == os.getpid():
         return True
@@ -244,8 +255,8 @@ _SINKS = {}
 def h5_file(path: str, name: Optional[str] = None, **kwargs):
     """``h5py.File(path, "w")`` whose disk errors cannot crash the process: yields the open
     file; closes it on exit; raises :class:`WriteError` naming ``name`` (default ``path``) when a
-    write failed (the file is then incomplete: the caller removes it). ``kwargs`` go to
-    ``h5py.File`` (e.g. ``libver``)."""
+    write failed (the file is then incomplete: the caller removes it; default name: the final
+    name ``path`` stands for, see :func:`final_name`). ``kwargs`` go to ``h5py.File``."""
     import h5py
 
     sink = _Sink(path)
@@ -268,7 +279,7 @@ def h5_file(path: str, name: Optional[str] = None, **kwargs):
         finally:
             sink.close()
         if sink.error is not None:
-            raise sink.failure(name or path) from (failed if not isinstance(failed, WriteError) else None)
+            raise sink.failure(name or final_name(path)) from (failed if not isinstance(failed, WriteError) else None)
 
 
 def check_writes(f, name: Optional[str] = None) -> None:
@@ -276,4 +287,4 @@ def check_writes(f, name: Optional[str] = None) -> None:
     a long writer stops at the next frame instead of at the end."""
     sink = _SINKS.get(id(f))
     if sink is not None and sink.error is not None:
-        raise sink.failure(name or sink.path)
+        raise sink.failure(name or final_name(sink.path))

@@ -170,6 +170,10 @@ def _completeness(headers: Dict[str, dict], root, allow_partial: bool, report: V
         return
     partial = os.path.join(str(root), ".partial")
     for stem in sorted(os.listdir(partial)) if os.path.isdir(partial) else []:
+        if os.path.join(str(root), stem + ".h5") in headers:  # finished; a kill cut its clean-up short
+            report.notes.append(f"{stem}: a leftover work folder of the finished shard {stem}.h5 (a run killed "
+                                f"while removing it); the next generate run removes it")
+            continue
         done = len([n for n in os.listdir(os.path.join(partial, stem)) if n.startswith("group-") and n.endswith(".h5")])
         plan = os.path.join(partial, stem, "shard.json")
         total = json.load(open(plan))["groups"] if os.path.isfile(plan) else None

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from ams_torch import __version__
+from ams_torch.apps.atomic import check_writes, h5_file
 from ams_torch.apps.data import (ARRAYS, FORMAT, FORMAT_VERSION, FRAME_DIGESTS, POSE_FIELDS, SPLITS, array_digest,
                                  sequence_checksum, sequence_name)
 from ams_torch.apps.datagen.simulate import simulate_group
@@ -164,14 +165,12 @@ def _collider_poses(run, t: float, head) -> tuple:
 
 def _write_group_file(recipe: Recipe, group: int, tmp: str, device=None) -> float:
     """Simulate batch group ``group`` into the HDF5 file ``tmp``. Returns ms/frame."""
-    import h5py
-
     from ams_torch.grooms.groom import fps_order
 
     writers: List[_SequenceWriter] = []
     guides, keep_v = recipe.store["guides"], recipe.store["velocities"]
     holder = {}
-    with h5py.File(tmp, "w") as h5:
+    with h5_file(tmp) as h5:  # a full disk is one OSError, not a crash of the HDF5 library
         def on_start(run, specs):
             holder["run"] = run
             rest = run.sim.model.rest_positions
@@ -191,6 +190,7 @@ def _write_group_file(recipe: Recipe, group: int, tmp: str, device=None) -> floa
                     _collider_poses(holder["run"], (k + 1) * holder["run"].sim.params.dt, p)
             for b, w in enumerate(writers):
                 w.frame(k, x[b], None if v is None else v[b], {n: a[b] for n, a in small.items()})
+            check_writes(h5)  # stop at the frame a write failed
 
         out = simulate_group(recipe, group, device=device, on_frame=on_frame, on_start=on_start)
         run = out["run"]
@@ -230,8 +230,9 @@ def copy_groups(recipe: Recipe, parts: List[str], tmp: str, shard: int, num_shar
     import h5py
 
     indices = []
-    with h5py.File(tmp, "w") as dst:
+    with h5_file(tmp) as dst:
         for j, p in enumerate(parts):
+            check_writes(dst)
             with h5py.File(p, "r") as src:
                 for name in sorted(k for k in src.keys() if k.startswith("seq_")):
                     src.copy(src[name], dst, name=name)
