@@ -10,6 +10,7 @@ from typing import Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
+from ams_torch.apps.data.metadata import duplicate_files, metadata_problems
 from ams_torch.apps.data.format import (FRAME_DIGESTS, FRAMED, PER_FRAME, POSE_FIELDS, SEQ_PREFIX, SPLITS, DatasetError,
                                         check_together, list_files, lock_holder, open_dataset, read_header,
                                         sequence_checksum, sequence_name)
@@ -132,6 +133,7 @@ def validate_file(path: str) -> List[str]:
         if set(present) - set(listed):
             problems.append(f"{path}: unlisted sequence(s) {sorted(set(present) - set(listed))[:5]}")
         try:
+            problems += [f"{path}: {p}" for p in metadata_problems(f)]  # attributes the readers depend on
             problems += [f"{path}: {p}" for p in _check_file_parts(f, listed)]
             for name in present:
                 problems += [f"{path}: {p}" for p in _check_sequence(f[name], name, frames, store)]
@@ -203,7 +205,7 @@ def validate(root: Union[str, Sequence[str]], progress: bool = False, allow_part
         raise DatasetError(f"{root}: not an ams_torch dataset ({len(files)} HDF5 file(s), none written by "
                            f"`ams-torch generate`)")
     headers = {p: h for p in files if (h := read_header(p)) is not None}
-    report.problems += check_together(headers)
+    report.problems += duplicate_files(files) + check_together(headers)
     _completeness(headers, root, allow_partial, report)
     holder = lock_holder(str(root)) if isinstance(root, str) and os.path.isdir(root) else None
     if holder:

@@ -14,6 +14,7 @@ from ams_torch import __version__
 from ams_torch.apps.atomic import check_writes, h5_file
 from ams_torch.apps.data import (ARRAYS, FORMAT, FORMAT_VERSION, FRAME_DIGESTS, POSE_FIELDS, SPLITS, array_digest,
                                  sequence_checksum, sequence_name)
+from ams_torch.apps.data.metadata import ATTRS_DIGEST, attrs_digest
 from ams_torch.apps.datagen.simulate import simulate_group
 from ams_torch.apps.recipe import Recipe
 
@@ -88,6 +89,7 @@ class _SequenceWriter:
         for k, val in attrs.items():
             self.g.attrs[k] = val
         self.g.attrs["checksum"] = sequence_checksum(self.digests)
+        self.g.attrs[ATTRS_DIGEST] = attrs_digest(self.g.attrs)  # last: covers every attribute above
 
 
 def _collider_mesh(c: dict):
@@ -248,6 +250,7 @@ def copy_groups(recipe: Recipe, parts: List[str], tmp: str, shard: int, num_shar
                          split=_json(recipe.split_ratios), shard=shard, num_shards=num_shards,
                          num_sequences=recipe.num_sequences, batch=recipe.batch, frames=recipe.frames,
                          sequences=np.asarray(indices, dtype=np.int64))
+        dst.attrs[ATTRS_DIGEST] = attrs_digest(dst.attrs)  # last: covers every attribute above
 
 
 def atomic_write(final: str, write: Callable[[str], None]) -> None:
