@@ -104,3 +104,21 @@ def test_a_file_given_twice_is_refused(shard, tmp_path):
         report = validate(files)
         assert not report.ok and any("is given twice" in p for p in report.problems)
     assert len(HairSequenceDataset([shard], window=2)) == 16
+
+
+def test_validate_could_not_run_on_any_file_that_is_not_a_dataset(shard, tmp_path, capsys):
+    """Item 14: a `.data` groom gave exit 1 (problems found), a simulate `sequence.h5` exit 2 (could
+    not run); both are not datasets: 2. A truncated dataset file is a problem found: 1."""
+    groom = tmp_path / "hair.data"
+    groom.write_bytes(np.random.default_rng(0).bytes(3000))
+    seq = tmp_path / "sequence.h5"
+    with h5py.File(seq, "w") as f:
+        f["positions"] = np.zeros((1, 2, 4, 3), np.float32)
+    for p in (groom, seq):
+        assert main(["validate", str(p), "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"error: {p}: not an ams_torch dataset") and err.count("\n") == 1
+    cut = tmp_path / "cut.h5"
+    cut.write_bytes(open(shard, "rb").read()[:20000])
+    assert main(["validate", str(cut), "--quiet"]) == 1
+    assert "cannot be opened as HDF5" in capsys.readouterr().out

@@ -248,3 +248,20 @@ def refuse_duplicates(files: Sequence[str]) -> None:
     found = duplicate_files(files)
     if found:
         raise DatasetError(f"{found[0]}; give each dataset file once")
+
+
+_HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
+
+
+def is_hdf5(path: str) -> bool:
+    """Whether the file starts with an HDF5 signature (at byte 0, 512, 1024, ...: where the
+    format allows its superblock), truncated or not; False for any other file."""
+    try:
+        with open(path, "rb") as fh:
+            for offset in (0, 512, 1024, 2048, 4096, 8192):
+                fh.seek(offset)
+                if fh.read(8) == _HDF5_MAGIC:
+                    return True
+    except OSError:
+        return False
+    return False

@@ -10,7 +10,7 @@ from typing import Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from ams_torch.apps.data.metadata import duplicate_files, metadata_problems
+from ams_torch.apps.data.metadata import duplicate_files, is_hdf5, metadata_problems
 from ams_torch.apps.data.format import (FRAME_DIGESTS, FRAMED, PER_FRAME, POSE_FIELDS, SEQ_PREFIX, SPLITS, DatasetError,
                                         check_together, list_files, lock_holder, open_dataset, read_header,
                                         sequence_checksum, sequence_name)
@@ -200,9 +200,10 @@ def validate(root: Union[str, Sequence[str]], progress: bool = False, allow_part
 
         it = tqdm(files, desc="validating", unit="file")
     report = ValidationReport(files={p: validate_file(p) for p in it})
-    foreign = [p for p, found in report.files.items() if found and "not an ams_torch dataset" in found[0]]
+    foreign = [p for p, found in report.files.items()  # not ours, or not HDF5 at all (a .data groom, say)
+               if found and ("not an ams_torch dataset" in found[0] or not is_hdf5(p))]
     if files and len(foreign) == len(files):
-        raise DatasetError(f"{root}: not an ams_torch dataset ({len(files)} HDF5 file(s), none written by "
+        raise DatasetError(f"{root}: not an ams_torch dataset ({len(files)} file(s), none written by "
                            f"`ams-torch generate`)")
     headers = {p: h for p in files if (h := read_header(p)) is not None}
     report.problems += duplicate_files(files) + check_together(headers)
