@@ -110,12 +110,14 @@ def _cmd_simulate(args) -> int:
     from ams_torch.apps.atomic import remove_stale
     from ams_torch.apps.datagen import nonfinite_inputs
     from ams_torch.apps.scene import build, load_scene, simulate
+    from ams_torch.apps.scene.limits import check_memory
     from ams_torch.apps.sequence import SequenceWriter, open_sequence
 
     device = parse_device(args.device)
     overrides = {k: getattr(args, k) for k in ("frames", "scale") if getattr(args, k) is not None}
     scene = load_scene(args.scene, overrides)
     dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype]
+    check_memory(scene, dtype.itemsize, 1, device, _max_memory(args), where=args.scene)  # before allocating
     os.makedirs(args.out, exist_ok=True)
     outputs = {k: os.path.join(args.out, k) for k in ("sequence.h5", "final.npz", "final.png", "video.mp4")}
     for path in outputs.values():
@@ -260,6 +262,13 @@ def _positive(name: str, v, integer: bool = True):
     return v
 
 
+def _max_memory(args):
+    """Bytes of ``--max-memory``, or None (the memory available)."""
+    from ams_torch.apps.scene.limits import parse_size
+
+    return None if args.max_memory is None else parse_size(args.max_memory)
+
+
 def _generate_shards(args, recipe) -> tuple:
     """(shards to generate or None for all, number of shards) from --shard/--shards, validated."""
     from ams_torch.apps.datagen import parse_shard
@@ -281,6 +290,7 @@ def _generate_shards(args, recipe) -> tuple:
 def _cmd_generate(args) -> int:
     from ams_torch.apps.datagen import generate, generate_ray
     from ams_torch.apps.recipe import load_recipe
+    from ams_torch.apps.recipe.checks import check_recipe_memory
 
     for name in ("sequences", "threads"):
         _positive(f"--{name}", getattr(args, name))
@@ -288,6 +298,7 @@ def _cmd_generate(args) -> int:
     device = None if args.device is None else str(parse_device(args.device))
     recipe = load_recipe(args.recipe, {"sequences": args.sequences} if args.sequences is not None else None)
     shards, n = _generate_shards(args, recipe)
+    check_recipe_memory(recipe, device, _max_memory(args))  # the largest batch group, before allocating
     if args.threads:
         import torch
 
@@ -347,6 +358,8 @@ def _parser() -> argparse.ArgumentParser:
     sp.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     sp.add_argument("--out", default="out")
     sp.add_argument("--no-video", action="store_true")
+    sp.add_argument("--max-memory", metavar="SIZE", help="refuse a scene whose estimated memory exceeds SIZE (8G, "
+                    "512M, bytes; default: the memory available)")
     sp.add_argument("--quiet", action="store_true", help="no progress bars")
     sp.set_defaults(fn=_cmd_simulate)
     rp = sub.add_parser("render", help="render a sequence.h5, or a sequence of a dataset, to MP4 (or PNG)")
@@ -373,6 +386,8 @@ def _parser() -> argparse.ArgumentParser:
     gp.add_argument("--cpus-per-task", type=float, default=1.0, help="Ray CPUs per batch-group task")
     gp.add_argument("--device", help="cpu, cuda or cuda:N (default cpu; Ray tasks take a GPU each when there are GPUs)")
     gp.add_argument("--threads", type=int, help="torch CPU threads")
+    gp.add_argument("--max-memory", metavar="SIZE", help="refuse a recipe whose largest batch group's estimated memory "
+                    "exceeds SIZE (8G, 512M, bytes; default: the memory available)")
     gp.add_argument("--quiet", action="store_true", help="no progress bars")
     gp.set_defaults(fn=_cmd_generate)
     vp = sub.add_parser("validate", help="check a dataset: every file sound and together complete "

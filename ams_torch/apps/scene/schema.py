@@ -30,6 +30,7 @@ import tomllib
 from typing import Optional
 
 from ams_torch.apps.motion import make_motion
+from ams_torch.geometry.sdf import MAX_RESOLUTION
 from ams_torch.apps.scene.checks import (_ABSENT, ABSENT, ANY_NUMBER, NONNEG, POSITIVE, ROTATION_TOLERANCE,  # noqa: F401
                                          UNITS, SceneError, _construct, _Ctx, _show, _table, boolean, check_rotation,
                                          check_table, file_path, integer, is_number, list_of, number, one_of,
@@ -81,7 +82,7 @@ def _head_mesh(v, key, ctx):
 
 
 HEAD = {"mesh": (_head_mesh, "default"), "subdivisions": (integer(1, 8), 4), "radius": (POSITIVE, 0.1),
-        "collide": (boolean, _ABSENT), "sdf_resolution": (integer(8, 1024), 64), **_IMPORT}
+        "collide": (boolean, _ABSENT), "sdf_resolution": (integer(8, MAX_RESOLUTION), 64), **_IMPORT}
 
 
 def _head(raw, ctx) -> dict:
