@@ -52,12 +52,18 @@ def test_a_callable_that_returns_nan_blames_the_input(backend):
     assert int(s.diverged_frame) == -1
 
 
-def test_a_callable_force_compiles_without_graph_breaks():
+def test_a_callable_force_traces_without_graph_breaks():
+    sim = _sim("torch")
+    force = lambda x, v, t: 1e-6 * torch.ones_like(x)  # noqa: E731
+    explained = torch._dynamo.explain(sim.step)(sim.initial_state(), None, external_force=force)
+    assert explained.graph_break_count == 0, [r.reason for r in explained.break_reasons]
+
+
+@pytest.mark.slow
+def test_a_callable_force_compiles_fullgraph():
     sim = _sim("torch")
     s0 = sim.initial_state()
     force = lambda x, v, t: 1e-6 * torch.ones_like(x)  # noqa: E731
-    explained = torch._dynamo.explain(sim.step)(s0, None, external_force=force)
-    assert explained.graph_break_count == 0, [r.reason for r in explained.break_reasons]
     compiled = torch.compile(sim.step, fullgraph=True, backend="aot_eager")
     e = c = s0
     for _ in range(2):
