@@ -52,6 +52,7 @@ def test_a_callable_that_returns_nan_blames_the_input(backend):
     assert int(s.diverged_frame) == -1
 
 
+@pytest.mark.slow
 def test_a_callable_force_traces_without_graph_breaks():
     sim = _sim("torch")
     force = lambda x, v, t: 1e-6 * torch.ones_like(x)  # noqa: E731
