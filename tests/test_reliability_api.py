@@ -92,6 +92,7 @@ def test_a_state_whose_tensors_disagree_on_scene_dims_is_refused(backend):
     (dict(device="nowhere"), "device 'nowhere' is not a torch device"),
     (dict(params=at.Params(gravity=(0.0, -1e308, 0.0))), r"Params.gravity = .* does not fit in torch.float32"),
     (dict(params=at.Params(stretch_rigidity=1e300)), r"Params.stretch_rigidity = 1e\+300 does not fit"),
+    (dict(params=at.Params(gravity=(0.0, -1e308, 0.0)), dtype=torch.float64), r"does not fit in torch.float64"),
 ])
 def test_simulator_arguments_that_cannot_run_are_refused(kw, said):
     """float16 ran and "diverged, try more substeps" at frame 1; bfloat16 ran; int32 and 'meta'

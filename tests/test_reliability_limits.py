@@ -111,3 +111,32 @@ def test_cli_refuses_before_allocating(tmp_path, capsys):
         from ams_torch.apps.recipe import load_recipe
 
         check_recipe_memory(load_recipe(str(recipe)), limit=parse_size("8G"))
+
+
+@pytest.mark.parametrize("error", [MemoryError(), RuntimeError("DefaultCPUAllocator: can't allocate memory: you tried "
+                                                               "to allocate 68719476736 bytes"),
+                                   RuntimeError("CUDA out of memory. Tried to allocate 20.00 GiB")])
+def test_running_out_of_memory_anyway_is_one_error_line(tmp_path, capsys, monkeypatch, error):
+    """An estimate can be short: memory that runs out is still one line (exit 2), with the
+    frames done kept; another RuntimeError stays a traceback (a bug)."""
+    from ams_torch.sim.simulator import Simulator
+
+    scene = tmp_path / "s.toml"
+    scene.write_text('frames = 3\n[head]\nmesh = "none"\n[groom]\nkind = "strand"\nstrands = 2\nparticles = 6\n')
+    step, calls = Simulator.step, []
+
+    def running_out(self, *a, **k):
+        calls.append(1)
+        if len(calls) == 2:
+            raise error
+        return step(self, *a, **k)
+
+    monkeypatch.setattr(Simulator, "step", running_out)
+    assert main(["simulate", str(scene), "--out", str(tmp_path / "o"), "--quiet", "--no-video"]) == 2
+    said = capsys.readouterr()
+    assert said.err.startswith("error: out of memory") and said.err.count("\n") == 1
+    assert "sequence.partial.h5" in said.out
+    calls.clear()
+    monkeypatch.setattr(Simulator, "step", lambda self, *a, **k: (_ for _ in ()).throw(RuntimeError("a bug")))
+    with pytest.raises(RuntimeError, match="a bug"):
+        main(["simulate", str(scene), "--out", str(tmp_path / "o2"), "--quiet", "--no-video"])

@@ -345,7 +345,11 @@ def test_export_to_a_place_it_cannot_write_is_one_error_line(sequence, tmp_path,
     blocked = tmp_path / "file"
     blocked.write_text("a file, not a folder")
     targets.append(str(blocked / "hair.usdc"))
+    folder = tmp_path / "a_folder.usdc"  # the target is a folder: the rename fails, the temporary goes
+    folder.mkdir()
+    targets.append(str(folder))
     for target in targets:
         assert main(["export", str(sequence), "--usd", target, "--quiet"]) == 2
         err = capsys.readouterr().err
         assert err.startswith(f"error: {target}") and err.count("\n") == 1, err
+    assert not leftovers(tmp_path)

@@ -1,8 +1,9 @@
 """The ``ams-torch`` command line: simulate a scene, render a sequence, generate and validate datasets.
 
     ams-torch [--debug] simulate SCENE.toml [--frames F] [--scale s] [--device cpu|cuda|cuda:N]
-                                  [--dtype float32|float64] [--out DIR] [--no-video]
-        → DIR/sequence.h5 (dataset ``positions`` (F, S, N, 3) float32 m, world frame;
+                                  [--dtype float32|float64] [--out DIR] [--no-video] [--max-memory SIZE]
+        → DIR/sequence.h5 (streamed frame by frame; a run that fails keeps its frames in
+          DIR/sequence.partial.h5) (dataset ``positions`` (F, S, N, 3) float32 m, world frame;
           ``rotations`` (F, 3, 3), ``translations`` (F, 3) m head poses; ``rest_positions``
           (S, N, 3); ``collider_rotations``/``collider_translations`` (F, C, 3, 3)/(F, C, 3) when
           the scene has [[colliders]]; attrs ``scene``, ``params``, ``ms_per_frame`` (JSON), ``dt`` s) and
@@ -11,6 +12,7 @@
     ams-torch render FILE.h5|DATASET_DIR [--sequence K] [--out video.mp4|frame.png] [--view front|side|back]
                                   [--every k]
     ams-torch generate RECIPE.toml --out DIR [--shard i/n | --shards n] [--backend local|ray] [--wait]
+                                  [--max-memory SIZE]
         → DIR/<name>-shard-<i>-of-<n>.h5 (shards numbered from 0; layout: docs/dataset_format.md);
           resumes a killed run; one run per folder at a time (a lock file).
     ams-torch validate DIR|FILE [--allow-partial]
@@ -20,9 +22,10 @@
           with time-sampled transforms; docs/assets.md), for Blender, Houdini, Omniverse, Unreal.
     ams-torch info
 
-Expected failures (bad input, a bad file, a simulation that diverged, a busy output folder)
-print one line ``error: <problem>`` on stderr and exit with status 2; ``--debug`` (before the
-command) shows the traceback instead.
+Expected failures (bad input, a bad file, a simulation that diverged, a busy output folder, a
+full disk, memory that ran out) print one line ``error: <problem>`` on stderr and exit with
+status 2; ``--debug`` (before the command) shows the traceback instead. Outputs are written
+whole or not at all (docs/reliability.md).
 """
 from __future__ import annotations
 
@@ -432,6 +435,16 @@ def main(argv=None) -> int:
             raise
         print(f"error: {' '.join(str(err).split()) or type(err).__name__}", file=sys.stderr)
         return 2
+    except (MemoryError, RuntimeError) as err:  # the allocators' words for running out of memory
+        text = " ".join(str(err).split())
+        if args.debug or not (isinstance(err, MemoryError) or any(w in text for w in _OUT_OF_MEMORY)):
+            raise
+        print(f"error: out of memory ({text[:200] or type(err).__name__}); the scene or recipe is larger than this "
+              f"machine holds: lower its sizes, or give --max-memory to have them checked first", file=sys.stderr)
+        return 2
+
+
+_OUT_OF_MEMORY = ("out of memory", "can't allocate memory", "std::bad_alloc", "Cannot allocate memory")
 
 
 if __name__ == "__main__":

@@ -266,17 +266,18 @@ class Params:
         return self
 
     def check_dtype(self, dtype: torch.dtype) -> None:
-        """Raise ``ValueError`` naming the first field whose value does not fit ``dtype`` (overflows
-        to Inf, e.g. gravity 1e308 in float32), which would otherwise surface as a divergence."""
-        big = torch.finfo(dtype).max
+        """Raise ``ValueError`` naming the first field whose value does not fit ``dtype`` with room
+        for the step's products (above its largest value / 1e6: gravity 1e308 in float32 or
+        float64), which would otherwise overflow and surface as a divergence."""
+        big = torch.finfo(dtype).max / 1e6
         for f in fields(self):
             v = getattr(self, f.name)
             values = v.detach().reshape(-1).tolist() if isinstance(v, torch.Tensor) else \
                 list(v) if isinstance(v, tuple) else [v]
             for x in values:
                 if isinstance(x, (int, float)) and not isinstance(x, bool) and abs(float(x)) > big:
-                    raise ValueError(f"Params.{f.name} = {v!r} does not fit in {dtype} (largest {big:.3g}); the "
-                                     f"simulation would overflow")
+                    raise ValueError(f"Params.{f.name} = {v!r} does not fit in {dtype} with room for the step's "
+                                     f"products (at most {big:.3g}); the simulation would overflow")
 
     # -- variants ----------------------------------------------------------------------
     def replace(self, **changes) -> "Params":
