@@ -140,3 +140,16 @@ def test_running_out_of_memory_anyway_is_one_error_line(tmp_path, capsys, monkey
     monkeypatch.setattr(Simulator, "step", lambda self, *a, **k: (_ for _ in ()).throw(RuntimeError("a bug")))
     with pytest.raises(RuntimeError, match="a bug"):
         main(["simulate", str(scene), "--out", str(tmp_path / "o2"), "--quiet", "--no-video"])
+
+
+@pytest.mark.slow
+def test_the_estimates_per_unit_costs_bound_the_measured_ones():
+    """scripts/memory_costs.py at toy sizes: each measured peak cost (bytes per particle on both
+    paths, per SDF sample, per grid cell built) is below the constant the estimate uses."""
+    from conftest import load_script
+
+    mc = load_script("memory_costs")
+    assert 0 < mc.cost("particles", (200, 800), "torch") <= limits.PARTICLE_BYTES
+    assert 0 < mc.cost("particles", (200, 800), "native") <= limits.PARTICLE_BYTES
+    assert 0 < mc.cost("sdf", (32, 48)) <= limits.SDF_SAMPLE_BYTES
+    assert 0 < mc.cost("grid", (16, 32)) <= limits.GRID_CELL_BYTES
