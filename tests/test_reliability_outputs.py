@@ -181,6 +181,7 @@ def test_simulate_on_a_full_disk_is_one_error_line_not_a_signal(tmp_path):
     assert not os.listdir(out)
 
 
+@pytest.mark.slow
 def test_h5_file_turns_a_failed_write_into_one_error(tmp_path):
     """The fault-tolerant HDF5 writer in a child under a size limit: an OSError naming the file
     at the frame it happened (check_writes), never a signal, the temporary removed."""
