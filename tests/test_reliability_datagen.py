@@ -2,7 +2,6 @@
 a kill -9 while the finished shard's work folder is removed, the lock file deleted under a
 running run."""
 import os
-import shutil
 import signal
 import subprocess
 import sys

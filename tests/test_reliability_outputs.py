@@ -1,7 +1,6 @@
 """Outputs are whole or absent (issue 28, items 1, 2, 3, 9, 12 and 14's render/export ones): full
 disks (a file size limit, ``ulimit -f``, in a child process; a fake ffmpeg that exits 0 after an
 error), kills at chosen points (SIGKILL from inside a child) and failures part-way."""
-import json
 import os
 import resource
 import signal

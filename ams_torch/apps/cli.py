@@ -30,7 +30,6 @@ whole or not at all (docs/reliability.md).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
