@@ -38,6 +38,7 @@ REFUSED = [
     ("params.collision_inextensibility", 10**9, "[params].collision_inextensibility"),
     ("head.sdf_resolution", 1024, "[head].sdf_resolution"), ("hair_hair.pressure_iterations", 10**9,
                                                               "[hair_hair].pressure_iterations"),
+    ("groom.growth.steps", 10**9, "[groom.growth].steps"), ("groom.growth.step", 1e-9, "[groom.growth].step"),
     # item 11: values that diverged with "try more substeps"
     ("dt", 1e-300, "dt"), ("params.dt", 1e-300, "[params].dt"), ("params.gravity", [0.0, -1e308, 0.0], "[params].gravity"),
     ("params.gravity", [0.0, -1e6, 0.0], "[params].gravity"), ("params.stretch_rigidity", 1e308, "[params].stretch_rigidity"),
@@ -87,6 +88,8 @@ def test_memory_is_estimated_from_the_sizes_and_refused_naming_the_largest_part(
         check_memory(scene)
     small = parse_scene(BASE)
     assert check_memory(small) < parse_size("1G")
+    grown = parse_scene(_with("groom.growth", {"length": 10.0, "step": 1e-4}))  # 1e5 growth steps per strand
+    assert estimate_memory(grown)["growth"][0] == 50 * 100001 * limits.GROWTH_POINT_BYTES
     assert parse_size("512M") == 512 * 2**20 and parse_size("2e9") == 2 * 10**9 and parse_size("1.5GB") == 1.5e9
     for bad in ("lots", "-1G", "0", "8X"):
         with pytest.raises(ValueError, match="--max-memory"):

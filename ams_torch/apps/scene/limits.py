@@ -32,6 +32,8 @@ RANGES: Dict[str, Tuple[float, float, str]] = {
     "[params].substeps": (1, 10**4, "substeps"), "[params].collision_inextensibility": (0, 100, "rounds"),
     "[params].num_pinned": (0, 4096, "particles"), "[params].check_every": (0, 10**7, "frames"),
     "[groom].strands": (1, 10**7, "strands"), "[groom].particles": (4, 4096, "particles per strand"),
+    "[groom.growth].steps": (1, 4096, "growth steps"), "[groom.growth].step": (1e-4, 1.0, "m per growth step"),
+    "[groom.growth].length": (0, 10.0, "m"), "[groom.growth].sdf_resolution": (8, MAX_RESOLUTION, "samples"),
     "[head].sdf_resolution": (8, MAX_RESOLUTION, "samples along the longest side (the SDF's limit)"),
     "[hair_hair].resolution": (2, 1024, "cells per axis"), "[hair_hair].pressure_iterations": (0, 10**4, "sweeps"),
     "[hair_hair].collision_max_per_cell": (1, 1024, "particles"), "[hair_hair].bounds_padding": (0, 100, "× the side"),
@@ -84,6 +86,8 @@ PARTICLE_BYTES = 2048
 GRID_CELL_BYTES = 64
 #: bytes per SDF sample while it is built (point-cloud-utils' queries, float64; measured 284-309 B)
 SDF_SAMPLE_BYTES = 320
+#: bytes per point of a growing strand (float64 points and the step's temporaries)
+GROWTH_POINT_BYTES = 96
 #: bytes per substep per scene (the substeps' head poses)
 SUBSTEP_BYTES = 1024
 
@@ -108,9 +112,22 @@ def estimate_memory(scene: dict, itemsize: int = 4, batch: int = 1) -> Dict[str,
         r = int(scene.get("hair_hair", {}).get("resolution", 128))
         parts["hair_hair"] = (int(r ** 3 * GRID_CELL_BYTES * scale), f"the {r}³ hair–hair grid ([hair_hair].resolution)")
     head = scene.get("head", {})
-    if stages.get("collisions") and head.get("collide", True) and head.get("mesh") not in ("sphere", "none", None):
-        r = int(head.get("sdf_resolution", 64))
-        parts["sdf"] = (r ** 3 * SDF_SAMPLE_BYTES, f"the {r}³ head SDF ([head].sdf_resolution)")
+    sdfs = []  # built one after the other: the largest one counts
+    meshed = head.get("mesh") not in ("sphere", "none", None)
+    if stages.get("collisions") and head.get("collide", True) and meshed:
+        sdfs.append((int(head.get("sdf_resolution", 64)), "[head].sdf_resolution"))
+    growth = g.get("growth", {}) if "preset" in g else None
+    if growth is not None and growth.get("collide", True) and meshed:
+        sdfs.append((int(growth.get("sdf_resolution", 128)), "[groom.growth].sdf_resolution"))
+    if sdfs:
+        r, key = max(sdfs)
+        parts["sdf"] = (r ** 3 * SDF_SAMPLE_BYTES, f"the {r}³ SDF of the head ({key})")
+    if growth is not None:
+        length, step = growth.get("length"), float(growth.get("step", 0.005))
+        k = int(growth["steps"]) if "steps" in growth else \
+            math.ceil(float(length) / step) if isinstance(length, (int, float)) and not isinstance(length, bool) else n
+        parts["growth"] = (s * (k + 1) * GROWTH_POINT_BYTES, f"{s:.3g} strands grown {k} steps ([groom.growth].steps, "
+                                                           f"or length / step)")
     m = int(scene.get("substeps", scene.get("params", {}).get("substeps", 1)))
     parts["substeps"] = (batch * m * SUBSTEP_BYTES, f"{m} substeps (substeps)")
     return parts
