@@ -120,3 +120,28 @@ def test_deleting_the_lock_file_does_not_let_a_second_run_in(recipe, tmp_path):
         stdout, stderr = child.communicate(timeout=120)
     assert child.returncode == 0, stderr
     assert validate(str(out)).ok
+
+
+def test_a_shard_that_does_not_read_back_is_not_renamed(recipe, tmp_path, monkeypatch):
+    """The assembled shard is read back (its sequences, its metadata) before the rename: a bad
+    one is never put in place, the finished groups stay for the next run."""
+    import h5py
+
+    from ams_torch.apps.datagen import shards
+
+    copy = shards.copy_groups
+
+    def bad_copy(*args):
+        copy(*args)
+        with h5py.File(args[2], "r+") as f:
+            f["seq_000000"].attrs["frames"] = 1000
+
+    monkeypatch.setattr(shards, "copy_groups", bad_copy)
+    out = tmp_path / "out"
+    with pytest.raises(OSError, match="the assembled shard does not read back: seq_000000: attribute 'frames'"):
+        generate(load_recipe(str(recipe)), str(out), progress=False, log=lambda s: None)
+    assert not (out / "mini-shard-00000-of-00001.h5").exists()
+    assert (out / ".partial" / "mini-shard-00000-of-00001" / "group-000000.h5").exists()
+    monkeypatch.setattr(shards, "copy_groups", copy)
+    generate(load_recipe(str(recipe)), str(out), progress=False, log=lambda s: None)
+    assert validate(str(out)).ok

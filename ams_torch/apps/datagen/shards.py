@@ -206,9 +206,32 @@ def prepare_shard(recipe: Recipe, out: str, shard: int, num_shards: int) -> dict
 def finish_shard(recipe: Recipe, plan: dict) -> str:
     """Assemble the shard file from its groups (temporary name, then rename); remove the work folder."""
     parts = [plan["path_of"](g) for g in plan["groups"]]
-    atomic_write(plan["final"], lambda tmp: copy_groups(recipe, parts, tmp, plan["shard"], plan["num_shards"]))
+
+    def assemble(tmp: str) -> None:
+        copy_groups(recipe, parts, tmp, plan["shard"], plan["num_shards"])
+        _read_back(tmp, recipe, plan)
+
+    atomic_write(plan["final"], assemble)
     _remove_work(plan["work"])
     return plan["final"]
+
+
+def _read_back(tmp: str, recipe: Recipe, plan: dict) -> None:
+    """The assembled shard opens, holds exactly its groups' sequences, and its metadata is sound
+    (attributes only: cheap), before it is renamed into place."""
+    import h5py
+
+    from ams_torch.apps.data.metadata import metadata_problems
+
+    want = sorted(i for g in plan["groups"] for i in recipe.group_sequences(g))
+    h = read_header(tmp)
+    found = [] if h is not None and h["digest"] == recipe.digest and h["sequences"] == want else \
+        [f"its header lists {None if h is None else h['sequences'][:8]}, expected sequences {want[:8]}"]
+    if not found:
+        with h5py.File(tmp, "r") as f:
+            found = metadata_problems(f)
+    if found:
+        raise OSError(errno.EIO, f"{plan['final']}: the assembled shard does not read back: {found[0]}")
 
 
 def _remove_work(work: str) -> None:
