@@ -20,6 +20,8 @@ __all__ = ["write_video", "write_png", "encode_png", "mp4_frame_count", "VIDEO_E
 
 VIDEO_EXTENSIONS = (".mp4",)
 IMAGE_EXTENSIONS = (".png",)
+#: the highest frame rate written (a scene's default is 1/dt, and dt may be as short as 1e-7 s)
+MAX_FPS = 1e7
 #: libx264 constant rate factor (imageio's quality 7 of 10: crf = 51 × 0.3 = 15)
 CRF = 15
 
@@ -173,8 +175,8 @@ def write_video(frames: Iterable[np.ndarray], path: str, fps: float = 30.0) -> s
     left under ``path``)."""
     if os.path.splitext(str(path))[1].lower() not in VIDEO_EXTENSIONS:
         raise ValueError(f"{path}: a video is written as .mp4 (got {os.path.splitext(str(path))[1] or 'no extension'})")
-    if not (isinstance(fps, (int, float)) and np.isfinite(fps) and 0 < fps <= 1000):
-        raise ValueError(f"{path}: fps must be a number in (0, 1000]; got {fps!r}")
+    if not (isinstance(fps, (int, float)) and np.isfinite(fps) and 0 < fps <= MAX_FPS):
+        raise ValueError(f"{path}: fps must be a number in (0, {MAX_FPS:g}]; got {fps!r}")
     sent = {}
 
     def verify(tmp: str) -> None:
