@@ -1,8 +1,9 @@
 """The ``ams-torch`` command line: simulate a scene, render a sequence, generate and validate datasets.
 
     ams-torch [--debug] simulate SCENE.toml [--frames F] [--scale s] [--device cpu|cuda|cuda:N]
-                                  [--dtype float32|float64] [--out DIR] [--no-video]
-        → DIR/sequence.h5 (dataset ``positions`` (F, S, N, 3) float32 m, world frame;
+                                  [--dtype float32|float64] [--out DIR] [--no-video] [--max-memory SIZE]
+        → DIR/sequence.h5 (streamed frame by frame; a run that fails keeps its frames in
+          DIR/sequence.partial.h5) (dataset ``positions`` (F, S, N, 3) float32 m, world frame;
           ``rotations`` (F, 3, 3), ``translations`` (F, 3) m head poses; ``rest_positions``
           (S, N, 3); ``collider_rotations``/``collider_translations`` (F, C, 3, 3)/(F, C, 3) when
           the scene has [[colliders]]; attrs ``scene``, ``params``, ``ms_per_frame`` (JSON), ``dt`` s) and
@@ -11,6 +12,7 @@
     ams-torch render FILE.h5|DATASET_DIR [--sequence K] [--out video.mp4|frame.png] [--view front|side|back]
                                   [--every k]
     ams-torch generate RECIPE.toml|SUITE_FOLDER --out DIR [--shard i/n | --shards n] [--backend local|ray] [--wait]
+                                  [--max-memory SIZE]
         → DIR/<name>-shard-<i>-of-<n>.h5 (shards numbered from 0; layout: docs/dataset_format.md);
           resumes a killed run; one run per folder at a time (a lock file).
     ams-torch validate DIR|FILE [--allow-partial]
@@ -24,14 +26,14 @@
           against the dense simulation (baselines/bench.py; a suite of datasets/bench/ is generated first).
     ams-torch info
 
-Expected failures (bad input, a bad file, a simulation that diverged, a busy output folder)
-print one line ``error: <problem>`` on stderr and exit with status 2; ``--debug`` (before the
-command) shows the traceback instead.
+Expected failures (bad input, a bad file, a simulation that diverged, a busy output folder, a
+full disk, memory that ran out) print one line ``error: <problem>`` on stderr and exit with
+status 2; ``--debug`` (before the command) shows the traceback instead. Outputs are written
+whole or not at all (docs/reliability.md).
 """
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -39,79 +41,9 @@ from typing import Optional
 
 import numpy as np
 
+from ams_torch.apps.sequence import read_sequence, write_final, write_sequence  # noqa: F401 - re-exported
+
 __all__ = ["main", "write_sequence", "write_final", "read_sequence"]
-
-
-def write_sequence(path: str, result: dict, scene: dict, params, rest: np.ndarray) -> str:
-    """Write a simulation result to HDF5 atomically (temporary name, then ``os.replace``)."""
-    import h5py
-
-    tmp = f"{path}.tmp{os.getpid()}"
-    with h5py.File(tmp, "w") as f:
-        f.create_dataset("positions", data=result["positions"].astype(np.float32), compression="gzip",
-                         compression_opts=1, chunks=(1,) + result["positions"].shape[1:])
-        f.create_dataset("rotations", data=result["rotations"].astype(np.float32))
-        f.create_dataset("translations", data=result["translations"].astype(np.float32))
-        f.create_dataset("rest_positions", data=np.asarray(rest, dtype=np.float32))
-        for k in ("collider_rotations", "collider_translations"):
-            if k in result:
-                f.create_dataset(k, data=result[k].astype(np.float32))
-        f.attrs["scene"] = json.dumps(scene)
-        f.attrs["params"] = json.dumps(params.to_dict())
-        f.attrs["ms_per_frame"] = json.dumps(result["ms_per_frame"])
-        f.attrs["dt"] = float(params.dt)
-        f.attrs["units"] = "metres, seconds; world frame, +y up"
-    os.replace(tmp, path)
-    return path
-
-
-def write_final(path: str, result: dict, rest: np.ndarray) -> str:
-    """Write the last frame of a run to ``.npz`` atomically: ``positions`` and ``velocities``
-    (S, N, 3) float32 (m, m/s, world), ``rest_positions`` (S, N, 3) m head frame, ``rotation``
-    (3, 3) and ``translation`` (3,) m the head pose, ``frame`` and ``time`` (s)."""
-    state = result["state"]
-    x, v = state.x.detach().cpu().float().numpy(), state.v.detach().cpu().float().numpy()
-    tmp = f"{path}.tmp{os.getpid()}.npz"
-    np.savez(tmp, positions=x, velocities=v, rest_positions=np.asarray(rest, dtype=np.float32),
-             rotation=result["rotations"][-1].astype(np.float32),
-             translation=result["translations"][-1].astype(np.float32),
-             frame=np.int64(state.frame), time=np.float64(state.time))
-    os.replace(tmp, path)
-    return path
-
-
-def _open_h5(path: str, what: str):
-    """Open an HDF5 file for reading; a ValueError naming it when it is missing or unreadable."""
-    import h5py
-
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"no such {what} {path!r}")
-    try:
-        return h5py.File(path, "r")
-    except (OSError, ValueError) as err:
-        raise ValueError(f"{path}: cannot be opened as HDF5 (truncated or corrupt file): {err}") from None
-
-
-def read_sequence(path: str) -> dict:
-    """Read a sequence written by :func:`write_sequence`: positions (F, S, N, 3), rotations,
-    translations, rest_positions (and collider_rotations (F, C, 3, 3), collider_translations
-    (F, C, 3) when the scene has colliders) and the parsed ``scene``/``params``/``ms_per_frame``, ``dt``.
-    A missing, truncated or corrupt file raises FileNotFoundError/ValueError naming it."""
-    with _open_h5(path, "sequence file") as f:
-        if "positions" not in f:
-            raise ValueError(f"{path}: no 'positions' dataset (not an ams-torch sequence)")
-        out = {}
-        for k in ("positions", "rotations", "translations", "rest_positions", "collider_rotations",
-                  "collider_translations"):
-            if k in f:
-                try:
-                    out[k] = f[k][()]
-                except (OSError, ValueError, RuntimeError) as err:
-                    raise ValueError(f"{path}: dataset {k!r} is unreadable (corrupt data): {err}") from None
-        for k in ("scene", "params", "ms_per_frame"):
-            out[k] = json.loads(f.attrs[k]) if k in f.attrs else {}
-        out["dt"] = float(f.attrs.get("dt", 1.0 / 60.0))
-    return out
 
 
 def _head_for_render(scene: dict):
@@ -180,15 +112,22 @@ def parse_device(text: Optional[str]):
 def _cmd_simulate(args) -> int:
     import torch
 
+    from ams_torch import SimulationDiverged
+    from ams_torch.apps.atomic import remove_stale
     from ams_torch.apps.datagen import nonfinite_inputs
     from ams_torch.apps.scene import build, load_scene, simulate
-    from ams_torch import SimulationDiverged
+    from ams_torch.apps.scene.limits import check_memory
+    from ams_torch.apps.sequence import SequenceWriter, open_sequence
 
     device = parse_device(args.device)
     overrides = {k: getattr(args, k) for k in ("frames", "scale") if getattr(args, k) is not None}
     scene = load_scene(args.scene, overrides)
     dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype]
+    check_memory(scene, dtype.itemsize, 1, device, _max_memory(args), where=args.scene)  # before allocating
     os.makedirs(args.out, exist_ok=True)
+    outputs = {k: os.path.join(args.out, k) for k in ("sequence.h5", "final.npz", "final.png", "video.mp4")}
+    for path in outputs.values():
+        remove_stale(path)  # temporaries of a run that was killed
     t0 = time.perf_counter()
     run = build(scene, device=device, dtype=dtype)
     s, n = run.sim.model.rest_positions.shape[:2]
@@ -196,43 +135,68 @@ def _cmd_simulate(args) -> int:
     print(f"scene {scene['name']}: {s} strands x {n} particles on {device} ({args.dtype}), "
           f"{scene['frames']} frames of {run.sim.params.dt * 1e3:.2f} ms, stages: {', '.join(stages) or 'none'}; "
           f"built in {time.perf_counter() - t0:.1f} s")
+    writer = SequenceWriter(outputs["sequence.h5"], scene, run.sim.params, run.rest, len(scene["colliders"]))
     try:
-        result = simulate(run, progress=not args.quiet)
-    except (SimulationDiverged, ValueError) as err:  # a NaN input: diverged, or refused by the step
+        result = simulate(run, progress=not args.quiet, record=writer.frame, keep=False)
+    except BaseException as err:
+        kept = writer.abort(keep=not isinstance(err, OSError))
+        if kept:
+            print(f"note: the {writer.count} frame(s) simulated before the failure are in {kept}", flush=True)
+        if not isinstance(err, (SimulationDiverged, ValueError)):
+            raise
         motions = [("[motion]", run.motion)] + [(f"[colliders[{i}].motion]", m) for i, m in enumerate(run.collider_motions)]
         bad = nonfinite_inputs(run.rest, motions, scene["frames"], run.sim.params.dt, [run.wind], run.sim.params)
-        if bad:
+        if bad:  # a NaN input: diverged, or refused by the step
             at = f" at frame {err.frame}" if isinstance(err, SimulationDiverged) else ""
             raise ValueError(f"{args.scene}: the scene input is not finite: {bad}; the simulation stopped{at}. "
                              f"This is not a stability problem (more substeps will not help): fix the input") from None
         raise
-    if not np.isfinite(result["positions"]).all():
-        raise ValueError(f"{args.scene}: the simulation produced non-finite positions")
-    h5 = write_sequence(os.path.join(args.out, "sequence.h5"), result, scene, run.sim.params, run.rest)
+    h5 = writer.finish(result["ms_per_frame"])
     print("ms/frame: " + ", ".join(f"{k} {v:.1f}" for k, v in result["ms_per_frame"].items())
           + f" (after the first frame, which took {result['first_frame_ms']:.0f} ms)")
     print(f"wrote {h5}")
-    final = write_final(os.path.join(args.out, "final.npz"), result, run.rest)
+    final = write_final(outputs["final.npz"], result, run.rest)
     print(f"wrote {final}")
-    seq = read_sequence(h5)
-    png = _render(seq, scene, os.path.join(args.out, "final.png"))  # a .png path draws the last frame
-    print(f"wrote {png}")
-    if not args.no_video:
-        video = _render(seq, scene, os.path.join(args.out, "video.mp4"), progress=not args.quiet)
-        print(f"wrote {video}")
+    with open_sequence(h5) as seq:
+        png = _render(seq, scene, outputs["final.png"])  # a .png path draws the last frame
+        print(f"wrote {png}")
+        if not args.no_video:
+            video = _render(seq, scene, outputs["video.mp4"], progress=not args.quiet)
+            print(f"wrote {video}")
     return 0
 
 
 def _is_dataset(path: str) -> bool:
     from ams_torch.apps.data import FORMAT
+    from ams_torch.apps.sequence import open_sequence
 
     if os.path.isdir(path):
         return True
-    with _open_h5(path, "file to render") as f:
-        return f.attrs.get("format") == FORMAT
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"no such file to render {path!r}")
+    try:
+        with open_sequence(path):
+            return False
+    except ValueError as err:
+        problem = err
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:  # not a simulate sequence: perhaps a dataset file
+            if f.attrs.get("format") == FORMAT:
+                return True
+    except (OSError, ValueError):
+        pass
+    raise problem
 
 
 def _cmd_render(args) -> int:
+    from ams_torch.apps.sequence import open_sequence
+    from ams_torch.apps.video import check_picture_path
+
+    if args.out is not None:
+        check_picture_path(args.out)
+    _positive("--every", args.every)
     if _is_dataset(args.file):
         from ams_torch.apps.data import read_dataset_sequence
 
@@ -246,8 +210,11 @@ def _cmd_render(args) -> int:
         if args.sequence is not None:
             raise ValueError(f"--sequence picks a sequence of a dataset; {args.file} is a simulate sequence file "
                              f"(one sequence)")
-        seq, drawn = read_sequence(args.file), None
         out = args.out or os.path.join(os.path.dirname(os.path.abspath(args.file)), "video.mp4")
+        with open_sequence(args.file) as seq:
+            path = _render(seq, seq["scene"], out, view=args.view, every=args.every, progress=not args.quiet)
+        print(f"wrote {path}")
+        return 0
     path = _render(seq, seq["scene"], out, view=args.view, every=args.every, progress=not args.quiet, head=drawn)
     print(f"wrote {path}")
     return 0
@@ -301,6 +268,13 @@ def _positive(name: str, v, integer: bool = True):
     return v
 
 
+def _max_memory(args):
+    """Bytes of ``--max-memory``, or None (the memory available)."""
+    from ams_torch.apps.scene.limits import parse_size
+
+    return None if args.max_memory is None else parse_size(args.max_memory)
+
+
 def _generate_shards(args, recipe) -> tuple:
     """(shards to generate or None for all, number of shards) from --shard/--shards, validated."""
     from ams_torch.apps.datagen import parse_shard
@@ -322,6 +296,7 @@ def _generate_shards(args, recipe) -> tuple:
 def _cmd_generate(args) -> int:
     from ams_torch.apps.datagen import generate, generate_ray
     from ams_torch.apps.recipe import load_recipe
+    from ams_torch.apps.recipe.checks import check_recipe_memory
 
     for name in ("sequences", "threads"):
         _positive(f"--{name}", getattr(args, name))
@@ -329,8 +304,11 @@ def _cmd_generate(args) -> int:
     device = None if args.device is None else str(parse_device(args.device))
     if os.path.isdir(args.recipe):  # a suite: every recipe of the folder, each into OUT/<recipe name>
         from ams_torch.apps.datagen import generate_suite
+        from ams_torch.apps.datagen.suite import suite_recipes
 
         shards, n = _generate_shards(args, None)
+        for r in suite_recipes(args.recipe, {"sequences": args.sequences} if args.sequences is not None else None)[0]:
+            check_recipe_memory(r, device, _max_memory(args))  # every recipe of the suite, before allocating
         if args.threads:
             import torch
 
@@ -343,6 +321,7 @@ def _cmd_generate(args) -> int:
         return 0
     recipe = load_recipe(args.recipe, {"sequences": args.sequences} if args.sequences is not None else None)
     shards, n = _generate_shards(args, recipe)
+    check_recipe_memory(recipe, device, _max_memory(args))  # the largest batch group, before allocating
     if args.threads:
         import torch
 
@@ -434,6 +413,8 @@ def _parser() -> argparse.ArgumentParser:
     sp.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     sp.add_argument("--out", default="out")
     sp.add_argument("--no-video", action="store_true")
+    sp.add_argument("--max-memory", metavar="SIZE", help="refuse a scene whose estimated memory exceeds SIZE (8G, "
+                    "512M, bytes; default: the memory available)")
     sp.add_argument("--quiet", action="store_true", help="no progress bars")
     sp.set_defaults(fn=_cmd_simulate)
     rp = sub.add_parser("render", help="render a sequence.h5, or a sequence of a dataset, to MP4 (or PNG)")
@@ -460,6 +441,8 @@ def _parser() -> argparse.ArgumentParser:
     gp.add_argument("--cpus-per-task", type=float, default=1.0, help="Ray CPUs per batch-group task")
     gp.add_argument("--device", help="cpu, cuda or cuda:N (default cpu; Ray tasks take a GPU each when there are GPUs)")
     gp.add_argument("--threads", type=int, help="torch CPU threads")
+    gp.add_argument("--max-memory", metavar="SIZE", help="refuse a recipe whose largest batch group's estimated memory "
+                    "exceeds SIZE (8G, 512M, bytes; default: the memory available)")
     gp.add_argument("--quiet", action="store_true", help="no progress bars")
     gp.set_defaults(fn=_cmd_generate)
     vp = sub.add_parser("validate", help="check a dataset: every file sound and together complete "
@@ -527,6 +510,16 @@ def main(argv=None) -> int:
             raise
         print(f"error: {' '.join(str(err).split()) or type(err).__name__}", file=sys.stderr)
         return 2
+    except (MemoryError, RuntimeError) as err:  # the allocators' words for running out of memory
+        text = " ".join(str(err).split())
+        if args.debug or not (isinstance(err, MemoryError) or any(w in text for w in _OUT_OF_MEMORY)):
+            raise
+        print(f"error: out of memory ({text[:200] or type(err).__name__}); the scene or recipe is larger than this "
+              f"machine holds: lower its sizes, or give --max-memory to have them checked first", file=sys.stderr)
+        return 2
+
+
+_OUT_OF_MEMORY = ("out of memory", "can't allocate memory", "std::bad_alloc", "Cannot allocate memory")
 
 
 if __name__ == "__main__":

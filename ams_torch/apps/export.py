@@ -289,73 +289,92 @@ def export_usd_arrays(usd_path: str, positions, dt: float, *, rotations=None, tr
         head_mesh = head_mesh_for_scene(scene)
     meshes = [collider_mesh(c) for c in specs]
 
-    directory = os.path.dirname(os.path.abspath(usd_path))
-    os.makedirs(directory, exist_ok=True)
-    tmp = os.path.join(directory, f".{os.path.basename(usd_path)}.tmp{os.getpid()}{ext}")
-    stage = Usd.Stage.CreateNew(tmp)
-    try:
-        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-        UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-        stage.SetTimeCodesPerSecond(1.0 / dt)
-        stage.SetFramesPerSecond(1.0 / dt)
-        if picks:
-            stage.SetStartTimeCode(picks[0] + 1)
-            stage.SetEndTimeCode(picks[-1] + 1)
-        world = UsdGeom.Xform.Define(stage, "/World")
-        stage.SetDefaultPrim(world.GetPrim())
-        stage.GetRootLayer().customLayerData = {"ams_torch:dt": dt, "ams_torch:every": int(every),
-                                                "ams_torch:frames": int(frames)}
-        hair = UsdGeom.BasisCurves.Define(stage, "/World/Hair")
-        hair.CreateTypeAttr(UsdGeom.Tokens.linear)
-        hair.CreateWrapAttr(UsdGeom.Tokens.nonperiodic)
-        hair.CreateCurveVertexCountsAttr(Vt.IntArray([int(n)] * s))
-        if per_point is None:
-            widths = Vt.FloatArray([float(w)])
-            hair.CreateWidthsAttr(widths)
-            hair.SetWidthsInterpolation(UsdGeom.Tokens.constant)
-        else:
-            widths = Vt.FloatArray.FromNumpy(per_point)
-            hair.CreateWidthsAttr(widths)
-            hair.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
-        points_attr = hair.CreatePointsAttr()
-        extent_attr = hair.CreateExtentAttr()
-        half = 0.5 * float(np.max(per_point) if per_point is not None else w)
-        xf_head = None
-        if head_mesh is not None and head_mesh is not False:
-            head = _mesh_prim(stage, UsdGeom, Vt, "/World/Head", head_mesh)
-            xf_head = head.AddTransformOp()
-        xf_cols = []
-        if meshes:
-            UsdGeom.Scope.Define(stage, "/World/Colliders")
-            for i, (spec, m) in enumerate(zip(specs, meshes)):
-                prim = _mesh_prim(stage, UsdGeom, Vt, f"/World/Colliders/{spec['type']}_{i}", m)
-                xf_cols.append(prim.AddTransformOp())
-        it = picks
-        if progress:
-            from tqdm.auto import tqdm
+    from ams_torch.apps.atomic import atomic_path
 
-            it = tqdm(picks, desc=f"exporting {os.path.basename(usd_path)}", unit="frame")
-        for k in it:
-            tc = Usd.TimeCode(k + 1)
-            x = np.ascontiguousarray(np.asarray(positions[k], dtype=np.float32).reshape(-1, 3))
-            points_attr.Set(Vt.Vec3fArray.FromNumpy(x), tc)
-            lo, hi = (x.min(0) - half, x.max(0) + half) if len(x) else (np.zeros(3), np.zeros(3))
-            extent_attr.Set(Vt.Vec3fArray.FromNumpy(np.stack([lo, hi]).astype(np.float32)), tc)
-            if xf_head is not None:
-                r = np.eye(3) if rotations is None else rotations[k]
-                t = np.zeros(3) if translations is None else translations[k]
-                xf_head.Set(_matrix(Gf, r, t), tc)
-            for c, op in enumerate(xf_cols):
-                op.Set(_matrix(Gf, collider_rotations[k][c], collider_translations[k][c]), tc)
-        stage.GetRootLayer().Save()
-    except BaseException:
-        del stage
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    del stage
-    os.replace(tmp, usd_path)
+    def verify(tmp: str) -> None:  # the stage opens and holds every frame's points
+        try:
+            back = Usd.Stage.Open(tmp)
+            samples = UsdGeom.BasisCurves(back.GetPrimAtPath("/World/Hair")).GetPointsAttr().GetNumTimeSamples()
+        except RuntimeError as err:
+            raise _usd_error(usd_path, err) from None
+        if samples != len(picks):
+            raise _usd_error(usd_path, f"the stage read back holds {samples} frames of points, {len(picks)} were written")
+
+    with atomic_path(usd_path, verify=verify) as tmp:
+        try:
+            stage = Usd.Stage.CreateNew(tmp)
+            UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+            UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+            stage.SetTimeCodesPerSecond(1.0 / dt)
+            stage.SetFramesPerSecond(1.0 / dt)
+            if picks:
+                stage.SetStartTimeCode(picks[0] + 1)
+                stage.SetEndTimeCode(picks[-1] + 1)
+            world = UsdGeom.Xform.Define(stage, "/World")
+            stage.SetDefaultPrim(world.GetPrim())
+            stage.GetRootLayer().customLayerData = {"ams_torch:dt": dt, "ams_torch:every": int(every),
+                                                    "ams_torch:frames": int(frames)}
+            hair = UsdGeom.BasisCurves.Define(stage, "/World/Hair")
+            hair.CreateTypeAttr(UsdGeom.Tokens.linear)
+            hair.CreateWrapAttr(UsdGeom.Tokens.nonperiodic)
+            hair.CreateCurveVertexCountsAttr(Vt.IntArray([int(n)] * s))
+            if per_point is None:
+                widths = Vt.FloatArray([float(w)])
+                hair.CreateWidthsAttr(widths)
+                hair.SetWidthsInterpolation(UsdGeom.Tokens.constant)
+            else:
+                widths = Vt.FloatArray.FromNumpy(per_point)
+                hair.CreateWidthsAttr(widths)
+                hair.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
+            points_attr = hair.CreatePointsAttr()
+            extent_attr = hair.CreateExtentAttr()
+            half = 0.5 * float(np.max(per_point) if per_point is not None else w)
+            xf_head = None
+            if head_mesh is not None and head_mesh is not False:
+                head = _mesh_prim(stage, UsdGeom, Vt, "/World/Head", head_mesh)
+                xf_head = head.AddTransformOp()
+            xf_cols = []
+            if meshes:
+                UsdGeom.Scope.Define(stage, "/World/Colliders")
+                for i, (spec, m) in enumerate(zip(specs, meshes)):
+                    prim = _mesh_prim(stage, UsdGeom, Vt, f"/World/Colliders/{spec['type']}_{i}", m)
+                    xf_cols.append(prim.AddTransformOp())
+            it = picks
+            if progress:
+                from tqdm.auto import tqdm
+
+                it = tqdm(picks, desc=f"exporting {os.path.basename(usd_path)}", unit="frame")
+            for k in it:
+                tc = Usd.TimeCode(k + 1)
+                x = np.ascontiguousarray(np.asarray(positions[k], dtype=np.float32).reshape(-1, 3))
+                points_attr.Set(Vt.Vec3fArray.FromNumpy(x), tc)
+                lo, hi = (x.min(0) - half, x.max(0) + half) if len(x) else (np.zeros(3), np.zeros(3))
+                extent_attr.Set(Vt.Vec3fArray.FromNumpy(np.stack([lo, hi]).astype(np.float32)), tc)
+                if xf_head is not None:
+                    r = np.eye(3) if rotations is None else rotations[k]
+                    t = np.zeros(3) if translations is None else translations[k]
+                    xf_head.Set(_matrix(Gf, r, t), tc)
+                for c, op in enumerate(xf_cols):
+                    op.Set(_matrix(Gf, collider_rotations[k][c], collider_translations[k][c]), tc)
+            stage.GetRootLayer().Save()
+        except RuntimeError as err:  # pxr.Tf.ErrorException: a full disk, a folder it cannot write...
+            raise _usd_error(usd_path, err) from None
+        finally:
+            stage = None
     return usd_path
+
+
+def _usd_error(usd_path: str, err) -> OSError:
+    """A WriteError naming the file and USD's own reason (its first error message)."""
+    import errno
+
+    from ams_torch.apps.atomic import WriteError
+
+    text = str(err)
+    said = [line.split(" : ", 1)[-1].strip().strip("'") for line in text.splitlines() if "Error" in line]
+    reason = said[0] if said else " ".join(text.split())
+    code = errno.ENOSPC if "No space left" in text else errno.EIO
+    return WriteError(code, f"{usd_path}: USD could not write the stage: {reason}")
 
 
 def export_usd(sequence_path: str, usd_path: str, *, every: int = 1, width=None, progress: bool = False) -> str:

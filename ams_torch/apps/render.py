@@ -5,6 +5,8 @@ from typing import Optional
 
 import numpy as np
 
+from ams_torch.apps.video import check_picture_path, write_png, write_video
+
 __all__ = ["render_groom", "SequenceRenderer", "render_sequence", "render_strip", "write_video", "collider_shapes"]
 
 
@@ -63,11 +65,19 @@ def render_groom(x, path: str, head_vertices: Optional[np.ndarray] = None, head_
         ax.set_xlabel("xyz"[a] + " (m)")
         ax.set_ylabel("y (m)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    import io
+
+    from ams_torch.apps.atomic import write_bytes
+
+    buf = io.BytesIO()
+    fig.savefig(buf, dpi=110, format="png")
     plt.close(fig)
+    write_bytes(path, buf.getvalue())
     return path
 
 
+#: largest picture side, pixels (a [render] size of 81.92 inches at 100 dpi)
+MAX_PIXELS = 8192
 _AXES = {"front": (0, 1, 2, 1.0), "side": (2, 1, 0, -1.0), "back": (0, 1, 2, -1.0)}  # (h, v, depth, sign)
 
 
@@ -103,6 +113,9 @@ class SequenceRenderer:
         self.head_vertices = None if head_vertices is None else _as_np(head_vertices)
         self.head_faces = None if head_faces is None else np.asarray(head_faces, dtype=np.int64)
         self.head_radius = head_radius
+        if not (isinstance(size, (int, float)) and np.isfinite(size) and size > 0 and 16 <= size * dpi <= MAX_PIXELS):
+            raise ValueError(f"the picture size must be {16 / dpi:g} to {MAX_PIXELS / dpi:g} inches at {dpi} dpi "
+                             f"(16 to {MAX_PIXELS} pixels a side); got size = {size!r}")
         px = int(round(size * dpi / 2)) * 2  # even: H.264 needs even sizes
         self.fig = Figure(figsize=(px / dpi, px / dpi), dpi=dpi)
         self.canvas = FigureCanvasAgg(self.fig)
@@ -241,25 +254,6 @@ def collider_shapes(specs, rotations, translations) -> list:
     return out
 
 
-def write_video(frames, path: str, fps: float = 30.0) -> str:
-    """Write RGB frames (an iterable of (H, W, 3) uint8) to an MP4 (H.264 via imageio-ffmpeg's
-    bundled ffmpeg, no system libraries) atomically (temporary name, then ``os.replace``)."""
-    import os
-
-    import imageio.v2 as imageio
-
-    tmp = f"{path}.tmp{os.getpid()}.mp4"
-    writer = imageio.get_writer(tmp, fps=fps, codec="libx264", quality=7, macro_block_size=2,
-                                ffmpeg_log_level="error")
-    try:
-        for f in frames:
-            writer.append_data(np.asarray(f, dtype=np.uint8))
-    finally:
-        writer.close()
-    os.replace(tmp, path)
-    return path
-
-
 def render_sequence(positions, path: str, rotations=None, translations=None, fps: float = 30.0,
                     every: int = 1, progress: bool = False, colliders=(), collider_rotations=None,
                     collider_translations=None, **renderer_args) -> str:
@@ -271,12 +265,18 @@ def render_sequence(positions, path: str, rotations=None, translations=None, fps
     ``collider_translations`` (F, C, 3) m; ``renderer_args`` go to :class:`SequenceRenderer`
     (head mesh, view, size...). Returns the path.
     """
-    positions = _as_np(positions)
-    frames = range(0, positions.shape[0], max(1, int(every)))
+    check_picture_path(path, "render path")
+    if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
+        raise ValueError(f"every must be an integer >= 1 (draw every k-th frame); got {every!r}")
+    if not isinstance(positions, np.ndarray) and not hasattr(positions, "shape"):
+        positions = _as_np(positions)  # a list: an array; an array or an h5py dataset is read frame by frame
+    if len(positions.shape) != 4 or positions.shape[-1] != 3 or positions.shape[0] < 1:
+        raise ValueError(f"positions must be (F, S, N, 3) with F >= 1; got {tuple(positions.shape)}")
+    frames = range(0, positions.shape[0], int(every))
     r = SequenceRenderer(**renderer_args)
     if renderer_args.get("extent") is None:  # frame the whole sequence
         a, b = _AXES[r.view][:2]
-        lo, hi = positions.reshape(-1, 3).min(0), positions.reshape(-1, 3).max(0)
+        lo, hi = _bounds(positions)
         c = 0.5 * (lo + hi)
         half = 0.55 * max(hi[a] - lo[a], hi[b] - lo[b], 0.3)
         r.extent = ((c[a] - half, c[a] + half), (c[b] - half, c[b] + half))
@@ -285,26 +285,34 @@ def render_sequence(positions, path: str, rotations=None, translations=None, fps
     shapes = lambda k: collider_shapes(colliders, collider_rotations[k], collider_translations[k]) \
         if len(colliders) and collider_rotations is not None else ()  # noqa: E731
     if str(path).lower().endswith(".png"):
-        import imageio.v2 as imageio
-
         last = positions.shape[0] - 1
-        imageio.imwrite(path, r.draw(positions[-1], *pose(last), shapes=shapes(last)))
-        return path
+        return write_png(path, r.draw(positions[-1], *pose(last), shapes=shapes(last)))
     it = frames
     if progress:
         from tqdm.auto import tqdm
 
         it = tqdm(frames, desc="rendering", unit="frame")
     return write_video((r.draw(positions[k], *pose(k), label=f"frame {k + 1}", shapes=shapes(k)) for k in it), path,
-                       fps=fps / max(1, int(every)))
+                       fps=fps / int(every))
+
+
+def _bounds(positions) -> tuple:
+    """(lo, hi) (3,) of every point of positions (F, S, N, 3), read one frame at a time when it is
+    not in memory (an h5py dataset), so a long sequence is never loaded whole."""
+    if isinstance(positions, np.ndarray):
+        flat = positions.reshape(-1, 3)
+        return flat.min(0).astype(np.float64), flat.max(0).astype(np.float64)
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for k in range(positions.shape[0]):
+        x = _as_np(positions[k]).reshape(-1, 3)
+        lo, hi = np.minimum(lo, x.min(0)), np.maximum(hi, x.max(0))
+    return lo, hi
 
 
 def render_strip(positions, path: str, picks, rotations=None, translations=None, labels=None, colliders=(),
                  collider_rotations=None, collider_translations=None, **renderer_args) -> str:
     """A PNG strip: the frames ``picks`` (indices into positions (F, S, N, 3)) side by side
     (arguments as :func:`render_sequence`)."""
-    import imageio.v2 as imageio
-
     positions = _as_np(positions)
     r = SequenceRenderer(**renderer_args)
     a, b = _AXES[r.view][:2]
@@ -323,5 +331,4 @@ def render_strip(positions, path: str, picks, rotations=None, translations=None,
         rot = None if rotations is None else rotations[k]
         tr = None if translations is None else translations[k]
         imgs.append(r.draw(positions[k], rot, tr, label=labels[j] if labels else f"frame {k + 1}", shapes=shapes[k]))
-    imageio.imwrite(path, np.concatenate(imgs, axis=1))
-    return path
+    return write_png(path, np.concatenate(imgs, axis=1))

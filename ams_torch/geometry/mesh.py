@@ -28,8 +28,8 @@ log = logging.getLogger(__name__)
 
 
 def check_mesh_arrays(path: str, vertices: np.ndarray, faces: np.ndarray) -> None:
-    """Raise ``ValueError`` naming ``path`` unless vertices (V, 3) are finite and faces (F, 3)
-    a non-empty array of indices in [0, V)."""
+    """Raise ``ValueError`` naming ``path`` unless vertices (V, 3) are finite, faces (F, 3) a
+    non-empty array of indices in [0, V), and at least one triangle has a non-zero area."""
     v = np.asarray(vertices)
     f = np.asarray(faces)
     if v.ndim != 2 or v.shape[1] != 3:
@@ -46,6 +46,12 @@ def check_mesh_arrays(path: str, vertices: np.ndarray, faces: np.ndarray) -> Non
         row = int(np.flatnonzero((f < 0).any(1) | (f >= len(v)).any(1))[0])
         raise ValueError(f"{path}: face {row} refers to vertex {int(f[row][(f[row] < 0) | (f[row] >= len(v))][0])}, "
                          f"outside [0, {len(v)}) (face indices out of range)")
+    tri = v.astype(np.float64)[f]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if not (area > 0).any():
+        extent = float(np.ptp(v.astype(np.float64)[np.unique(f)], axis=0).max())
+        raise ValueError(f"{path}: a degenerate mesh: every one of its {len(f)} triangle(s) has zero area (its used "
+                         f"vertices span {extent:.3g} along their longest side); a head or collider needs a surface")
 
 
 def closest_points(mesh, points):

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["SDFGrid", "sdf_cache_dir", "orient_faces", "MAX_RESOLUTION"]
+__all__ = ["SDFGrid", "sdf_cache_dir", "orient_faces", "MAX_RESOLUTION", "PROGRESS_WORK"]
 
 log = logging.getLogger(__name__)
 
@@ -109,7 +109,7 @@ class SDFGrid:
 
     @staticmethod
     def from_mesh(mesh, resolution: int = 128, padding: Optional[float] = None, cache: bool = True,
-                  cache_dir: Optional[Union[str, os.PathLike]] = None) -> "SDFGrid":
+                  cache_dir: Optional[Union[str, os.PathLike]] = None, progress: Optional[bool] = None) -> "SDFGrid":
         """Signed distance grid of a triangle mesh, in the mesh's own frame (metres).
 
         Args:
@@ -123,6 +123,9 @@ class SDFGrid:
                 Default: 10 % of the longest side plus two voxels.
             cache: read/write the on-disk cache, keyed by a hash of the vertices, faces,
                 resolution and padding (directory :func:`sdf_cache_dir`, or ``cache_dir``).
+            progress: show a progress bar (stderr) while the samples are computed; None (default):
+                when the build is long (faces × samples above :data:`PROGRESS_WORK`, e.g. a
+                million-triangle scan at 128³, which takes minutes; it is cached afterwards).
 
         Exact distances come from point-cloud-utils' closest points (AABB tree); the sign from
         its fast generalised winding number, |w| > 1/2 inside, computed on the faces as
@@ -142,6 +145,9 @@ class SDFGrid:
         _check_arrays(vertices, faces)
         lo, hi = vertices.min(0), vertices.max(0)
         extent = float((hi - lo).max())
+        if not extent > 0:
+            raise ValueError("SDFGrid.from_mesh: a degenerate mesh: all its vertices are at one point (a bounding box "
+                             "of zero size)")
         if padding is None:
             # two voxels on top of 10 %: solve pad = 0.1 e + 2 (e + 2 pad) / (res − 1)
             padding = (0.1 * extent + 2 * extent / (resolution - 1)) / (1 - 4 / (resolution - 1))
@@ -167,9 +173,7 @@ class SDFGrid:
         # Exact unsigned distance (AABB tree), sign from the fast generalised winding number.
         # (pcu.signed_distance_to_mesh was measured up to 0.7 mm off the true distance on the
         # default head, so it is not used.) |w| > 1/2 is inside for either face orientation.
-        dist, _, _ = pcu.closest_points_on_mesh(pts, vertices, faces)
-        winding = pcu.triangle_soup_fast_winding_number(vertices, orient_faces(vertices, faces), pts)
-        sdf = np.where(np.abs(winding) > 0.5, -dist, dist)
+        sdf = _signed_distances(pcu, pts, vertices, faces, shape, progress)
         log.info("built %s SDF grid of a %d-face mesh in %.1f s", "x".join(map(str, shape)), len(faces),
                  time.perf_counter() - t0)
         values = np.asarray(sdf, dtype=np.float32).reshape(shape)
@@ -267,6 +271,41 @@ class SDFGrid:
         nx, ny, nz = self.shape
         return (f"SDFGrid({nx}x{ny}x{nz}, voxel={self.spacing * 1e3:.2f} mm, "
                 f"origin={self.origin.tolist()}, {self.dtype}, {self.device})")
+
+
+#: faces × samples above which :meth:`SDFGrid.from_mesh` shows a progress bar by default (about 10 s)
+PROGRESS_WORK = 5e10
+#: the chunks a long build's samples are computed in (each rebuilds the mesh's search trees)
+PROGRESS_CHUNKS = 20
+
+
+def _signed_distances(pcu, pts: np.ndarray, vertices: np.ndarray, faces: np.ndarray, shape,
+                      progress: Optional[bool]) -> np.ndarray:
+    """Signed distances (P,) at the grid points: exact unsigned distance, sign from the fast
+    generalised winding number of the oriented faces. In chunks under a progress bar when the
+    build is long (the result is the same point by point)."""
+    oriented = orient_faces(vertices, faces)
+    show = progress if progress is not None else len(faces) * len(pts) > PROGRESS_WORK
+    bounds = np.linspace(0, len(pts), PROGRESS_CHUNKS + 1 if show else 2).astype(np.int64)
+    out = np.empty(len(pts), dtype=np.float64)
+    bar = None
+    if show:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(pts), unit="sample", unit_scale=True, desc=f"SDF {'x'.join(map(str, shape))} of a "
+                   f"{len(faces):,}-triangle mesh (cached afterwards)")
+    try:
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            chunk = pts[a:b]
+            dist, _, _ = pcu.closest_points_on_mesh(chunk, vertices, faces)
+            winding = pcu.triangle_soup_fast_winding_number(vertices, oriented, chunk)
+            out[a:b] = np.where(np.abs(winding) > 0.5, -dist, dist)
+            if bar is not None:
+                bar.update(int(b - a))
+    finally:
+        if bar is not None:
+            bar.close()
+    return out
 
 
 def _check_arrays(vertices: np.ndarray, faces: np.ndarray) -> None:

@@ -2,9 +2,11 @@
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Tuple, Union
 
+import numpy as np
 import torch
 
 __all__ = ["Params", "PARAM_PRESETS", "PAPER_UNITS"]
@@ -192,6 +194,7 @@ class Params:
     # -- validation --------------------------------------------------------------------
     def validate(self) -> "Params":
         """Raise ``ValueError`` naming the first invalid field."""
+        _check_kinds(self)
         if self.material not in ("per_particle", "per_length"):
             raise ValueError(f"Params.material must be 'per_particle' or 'per_length'; got {self.material!r}")
         for name in ("stretch_stiffness", "bend_scale", "torsion_scale", "integrity_stiffness",
@@ -250,6 +253,10 @@ class Params:
             raise ValueError(f"Params.max_relative_speed must be positive (m/s); got {self.max_relative_speed}")
         if self.check_every < 0:
             raise ValueError(f"Params.check_every must be >= 0; got {self.check_every}")
+        if self.dt / self.substeps < MIN_SUBSTEP:
+            raise ValueError(f"Params.dt = {self.dt!r} s over {self.substeps} substep(s) is a substep of "
+                             f"{self.dt / self.substeps:.3g} s, below {MIN_SUBSTEP:g} s: the step divides by it and "
+                             f"overflows; use a frame of at least {MIN_SUBSTEP * self.substeps:g} s")
         other = "per_particle" if self.material == "per_length" else "per_length"
         for name in MATERIAL_ONLY[other]:
             if not _same(getattr(self, name), _DEFAULTS[name]):
@@ -257,6 +264,20 @@ class Params:
                 raise ValueError(f"Params.{name} is a field of the {other} material, but material = {self.material!r} "
                                  f"ignores it: set material={other!r} to use it, or the {self.material} fields ({hint})")
         return self
+
+    def check_dtype(self, dtype: torch.dtype) -> None:
+        """Raise ``ValueError`` naming the first field whose value does not fit ``dtype`` with room
+        for the step's products (above its largest value / 1e6: gravity 1e308 in float32 or
+        float64), which would otherwise overflow and surface as a divergence."""
+        big = torch.finfo(dtype).max / 1e6
+        for f in fields(self):
+            v = getattr(self, f.name)
+            values = v.detach().reshape(-1).tolist() if isinstance(v, torch.Tensor) else \
+                list(v) if isinstance(v, tuple) else [v]
+            for x in values:
+                if isinstance(x, (int, float)) and not isinstance(x, bool) and abs(float(x)) > big:
+                    raise ValueError(f"Params.{f.name} = {v!r} does not fit in {dtype} with room for the step's "
+                                     f"products (at most {big:.3g}); the simulation would overflow")
 
     # -- variants ----------------------------------------------------------------------
     def replace(self, **changes) -> "Params":
@@ -349,3 +370,30 @@ class Params:
 
 
 _DEFAULTS = {f.name: f.default for f in fields(Params)}
+#: s, the shortest substep (dt / substeps) Params accepts: the step divides by it
+MIN_SUBSTEP = 1e-9
+
+
+def _check_kinds(p: "Params") -> None:
+    """Each field of the kind its default is (a number or a tensor, a whole number, a bool, a
+    string, three numbers), so a string or None gives a ValueError naming the field, not a raw
+    TypeError later."""
+    for f in fields(p):
+        v, d = getattr(p, f.name), _DEFAULTS[f.name]
+        if isinstance(d, bool):
+            ok, what = isinstance(v, bool), "true or false"
+        elif isinstance(d, str):
+            ok, what = isinstance(v, str), "a string"
+        elif isinstance(d, tuple):
+            ok = isinstance(v, (tuple, list)) and len(v) == 3 and all(
+                isinstance(c, (int, float)) and not isinstance(c, bool) for c in v)
+            what = "three numbers"
+        elif isinstance(d, int):
+            ok = isinstance(v, int) and not isinstance(v, bool)
+            what = "a positive integer" if f.name == "substeps" else "a non-negative integer"
+        else:
+            ok = isinstance(v, torch.Tensor) and v.is_floating_point() or (
+                isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_)))
+            what = "a number or a floating-point tensor"
+        if not ok:
+            raise ValueError(f"Params.{f.name} must be {what}; got {v!r} ({type(v).__name__})")

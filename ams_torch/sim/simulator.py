@@ -24,6 +24,58 @@ def _is_zero(v) -> bool:
     return not isinstance(v, torch.Tensor) and float(v) == 0.0
 
 
+DTYPES = (torch.float32, torch.float64)
+
+
+def _check_device_dtype(device, dtype) -> torch.device:
+    """The simulator's device, or a ValueError naming what is wrong with ``device``/``dtype``."""
+    if dtype not in DTYPES:
+        why = " (half precision cannot hold the strands' solve: it needs float32 at least)" \
+            if isinstance(dtype, torch.dtype) and dtype.is_floating_point else ""
+        raise ValueError(f"dtype must be torch.float32 or torch.float64; got {dtype!r}{why}")
+    try:
+        device = torch.device(device) if device is not None else torch.device("cpu")
+    except (RuntimeError, TypeError) as err:
+        raise ValueError(f"device {device!r} is not a torch device ({err})") from None
+    if device.type == "meta":
+        raise ValueError("device 'meta' holds no data and cannot simulate; use cpu or cuda")
+    try:
+        torch.empty(1, device=device, dtype=dtype)
+    except (RuntimeError, AssertionError, TypeError) as err:
+        raise ValueError(f"device {str(device)!r} cannot hold {dtype} tensors here: {err}") from None
+    return device
+
+
+class _CheckedForce:
+    """A callable external force checked like a tensor at every call (metadata only: shape,
+    dtype, device; no host sync): its result must be a floating tensor of the state's shape or
+    broadcast to it, and is converted to the simulator's dtype and device. Whether it held
+    NaN/Inf is kept as a device-side flag (``nonfinite``) that :meth:`Simulator.step` folds
+    into the state's divergence record, so a divergence it caused blames the input."""
+
+    def __init__(self, fn, shape, dtype, device):
+        self.fn, self.shape, self.dtype, self.device = fn, tuple(shape), dtype, device
+        self.nonfinite = None
+
+    def __call__(self, x, v, t):
+        out = self.fn(x, v, t)
+        want = f"a tensor of shape {self.shape} (..., S, N, 3) newtons, or one that broadcasts to it"
+        if not isinstance(out, torch.Tensor):
+            raise ValueError(f"external_force(x, v, t) must return {want}; it returned {type(out).__name__}")
+        if not out.is_floating_point():
+            raise ValueError(f"external_force(x, v, t) must return a floating-point tensor; it returned {out.dtype}")
+        try:
+            ok = torch.broadcast_shapes(out.shape, self.shape) == self.shape
+        except RuntimeError:
+            ok = False
+        if not ok:
+            raise ValueError(f"external_force(x, v, t) must return {want}; it returned shape {tuple(out.shape)}")
+        out = out.to(device=self.device, dtype=self.dtype)
+        bad = ~torch.isfinite(out.sum())
+        self.nonfinite = bad if self.nonfinite is None else self.nonfinite | bad
+        return out
+
+
 class Simulator(torch.nn.Module):
     """Simulate a groom with the AMS model.
 
@@ -71,7 +123,8 @@ class Simulator(torch.nn.Module):
         if not isinstance(params, Params):
             raise ValueError(f"params must be an ams_torch.Params; got {type(params).__name__}")
         self.params = params
-        device = torch.device(device) if device is not None else torch.device("cpu")
+        device = _check_device_dtype(device, dtype)
+        params.check_dtype(dtype)
         self.model = Model(rest_positions, params, learnable=learnable, device=device, dtype=dtype)
         warn_if_no_sag_offset(params)
         mass = coefficients(self.model).mass.detach()
@@ -203,6 +256,13 @@ class Simulator(torch.nn.Module):
                              f"simulator, or convert the simulator (sim.double()/sim.float())")
         if x.device != self.device:
             raise ValueError(f"state is on {x.device} but the simulator is on {self.device}")
+        for name in ("ghost_rest", "sag_offset"):
+            t = getattr(state, name)
+            if not isinstance(t, torch.Tensor) or t.shape != x.shape:
+                got = tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__
+                raise ValueError(f"state.{name} has shape {got} but state.x {tuple(x.shape)}: a state's tensors share "
+                                 f"their scene dims (make it with initial_state, and replace x, v, ghost_rest and "
+                                 f"sag_offset together)")
         batch = tuple(x.shape[:-3])
         if pose is not None:
             if not isinstance(pose, Pose):
@@ -224,6 +284,8 @@ class Simulator(torch.nn.Module):
             if not external_force.is_floating_point():
                 raise ValueError(f"external_force must be a floating-point tensor; got {external_force.dtype}")
             external_force = external_force.to(device=self.device, dtype=self.dtype)
+        elif callable(external_force) and not isinstance(external_force, _CheckedForce):
+            external_force = _CheckedForce(external_force, x.shape, self.dtype, self.device)
         elif external_force is not None and not callable(external_force):
             raise ValueError(f"external_force must be a tensor, a callable f(x, v, t) or None; got "
                              f"{type(external_force).__name__}")
@@ -272,6 +334,11 @@ class Simulator(torch.nn.Module):
         """
         control = self.control(state, pose, collider_poses=collider_poses, external_force=external_force)
         new = step_mod.step(self.model, state, control, self.config, timer)
+        force = control.external_force
+        if isinstance(force, _CheckedForce) and force.nonfinite is not None:  # a callable's NaN: the input's fault
+            first = (state.diverged_frame < 0) & (new.diverged_frame >= 0)
+            new = new.replace(diverged_input=torch.where(first, new.diverged_input | force.nonfinite,
+                                                         new.diverged_input))
         every = self.params.check_every
         if every and not torch.compiler.is_compiling():  # compiled: call sim.check(state) yourself
             self._frames += 1

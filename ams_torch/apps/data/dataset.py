@@ -10,6 +10,7 @@ from typing import Dict, Iterable, List, Optional, Sequence, Tuple, Union
 import numpy as np
 import torch
 
+from ams_torch.apps.data.metadata import check_metadata, refuse_duplicates
 from ams_torch.apps.data.format import (FRAME_DIGESTS, PER_FRAME, PER_SEQUENCE, SEQ_PREFIX, SPLITS, DatasetError,
                                         alone_count, alone_name, check_together, is_framed, list_files, open_dataset,
                                         read_header)
@@ -154,12 +155,14 @@ class HairSequenceDataset(torch.utils.data.Dataset):
         for sp in splits or []:
             _check_choice(sp, SPLITS, "split")
         self.files = list_files(root)
+        refuse_duplicates(self.files)
         self.window, self.stride, self.dtype = window, stride, dtype
         keep = None if sequences is None else {int(i) for i in sequences}
         self.sequences: List[Tuple[int, str, int, int]] = []  # (file, group name, index, frames)
         available, headers, dense_guides = None, {}, None
         for fi, path in enumerate(self.files):
             with open_dataset(path) as f:
+                check_metadata(f, path)  # attributes as written: frames, index, digests, recipe_digest...
                 headers[path] = read_header(path) or {"digest": "?", "num_shards": -1, "sequences": []}
                 masks = {sp: dict(zip(headers[path]["sequences"], f[f"mask/{sp}"][()].tolist())) for sp in SPLITS}
                 for name in sorted(k for k in f.keys() if k.startswith(SEQ_PREFIX)):

@@ -10,6 +10,7 @@ from typing import Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
+from ams_torch.apps.data.metadata import duplicate_files, is_hdf5, metadata_problems
 from ams_torch.apps.data.format import (FRAME_DIGESTS, PER_FRAME, POSE_FIELDS, SEQ_PREFIX, SPLITS, DatasetError,
                                         alone_count, alone_name, check_together, is_framed, list_files, lock_holder,
                                         open_dataset, read_header, sequence_checksum, sequence_name)
@@ -144,6 +145,7 @@ def validate_file(path: str) -> List[str]:
         if set(present) - set(listed):
             problems.append(f"{path}: unlisted sequence(s) {sorted(set(present) - set(listed))[:5]}")
         try:
+            problems += [f"{path}: {p}" for p in metadata_problems(f)]  # attributes the readers depend on
             problems += [f"{path}: {p}" for p in _check_file_parts(f, listed)]
             for name in present:
                 problems += [f"{path}: {p}" for p in _check_sequence(f[name], name, frames, store)]
@@ -182,6 +184,10 @@ def _completeness(headers: Dict[str, dict], root, allow_partial: bool, report: V
         return
     partial = os.path.join(str(root), ".partial")
     for stem in sorted(os.listdir(partial)) if os.path.isdir(partial) else []:
+        if os.path.join(str(root), stem + ".h5") in headers:  # finished; a kill cut its clean-up short
+            report.notes.append(f"{stem}: a leftover work folder of the finished shard {stem}.h5 (a run killed "
+                                f"while removing it); the next generate run removes it")
+            continue
         done = len([n for n in os.listdir(os.path.join(partial, stem)) if n.startswith("group-") and n.endswith(".h5")])
         plan = os.path.join(partial, stem, "shard.json")
         total = json.load(open(plan))["groups"] if os.path.isfile(plan) else None
@@ -206,12 +212,13 @@ def validate(root: Union[str, Sequence[str]], progress: bool = False, allow_part
 
         it = tqdm(files, desc="validating", unit="file")
     report = ValidationReport(files={p: validate_file(p) for p in it})
-    foreign = [p for p, found in report.files.items() if found and "not an ams_torch dataset" in found[0]]
+    foreign = [p for p, found in report.files.items()  # not ours, or not HDF5 at all (a .data groom, say)
+               if found and ("not an ams_torch dataset" in found[0] or not is_hdf5(p))]
     if files and len(foreign) == len(files):
-        raise DatasetError(f"{root}: not an ams_torch dataset ({len(files)} HDF5 file(s), none written by "
+        raise DatasetError(f"{root}: not an ams_torch dataset ({len(files)} file(s), none written by "
                            f"`ams-torch generate`)")
     headers = {p: h for p in files if (h := read_header(p)) is not None}
-    report.problems += check_together(headers)
+    report.problems += duplicate_files(files) + check_together(headers)
     _completeness(headers, root, allow_partial, report)
     holder = lock_holder(str(root)) if isinstance(root, str) and os.path.isdir(root) else None
     if holder:

@@ -67,27 +67,63 @@ def log_plan(recipe: Recipe, log: Callable[[str], None]) -> None:
 
 
 # -- the output folder: one run at a time, one dataset per folder ---------------------------------
+def _flock(fd: int, wait: bool) -> bool:
+    """flock(fd) exclusively: True when taken, False when another process holds it (``wait``:
+    block until it is free)."""
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
+        return True
+    except OSError as err:
+        if err.errno not in (errno.EAGAIN, errno.EWOULDBLOCK, errno.EACCES):
+            raise
+        return False
+
+
+def _folder_fd(out: str) -> Optional[int]:
+    """A descriptor of the folder itself for flock, or None where the file system cannot lock
+    folders (then the lock file alone serves)."""
+    try:
+        fd = os.open(out, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)  # probe: can this file system lock a folder?
+        fcntl.flock(fd, fcntl.LOCK_UN)
+    except OSError as err:
+        if err.errno not in (errno.EAGAIN, errno.EWOULDBLOCK, errno.EACCES):
+            os.close(fd)
+            return None
+    return fd
+
+
 @contextlib.contextmanager
 def output_lock(out: str, wait: bool = False, log: Callable[[str], None] = print):
-    """Hold an exclusive ``flock`` on ``out/.lock`` (created if needed) for the ``with`` block;
-    the file records pid, host, start time and command. Another holder: :class:`OutputError`
-    naming it, or (``wait``) block until it is done. The kernel releases the lock when the
-    process dies, so a killed run leaves no stale lock."""
+    """Hold an exclusive ``flock`` on the folder ``out`` itself and on ``out/.lock`` (created if
+    needed) for the ``with`` block; the file records pid, host, start time and command. The
+    folder's lock is what holds: deleting ``.lock`` under a running run does not let a second
+    run in (the file's lock keeps runs of older versions out). Another holder:
+    :class:`OutputError` naming it, or (``wait``) block until it is done. The kernel releases the
+    locks when the process dies, so a killed run leaves no stale lock."""
     os.makedirs(out, exist_ok=True)
-    fd = os.open(os.path.join(out, LOCK_FILE), os.O_RDWR | os.O_CREAT, 0o644)
+    path = os.path.join(out, LOCK_FILE)
+    folder = _folder_fd(out)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     held = False
     try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as err:
-            if err.errno not in (errno.EAGAIN, errno.EWOULDBLOCK, errno.EACCES):
-                raise
-            holder = holder_text(json.loads(os.pread(fd, 65536, 0).decode() or "{}"))
+        if not all(_flock(d, False) for d in (folder, fd) if d is not None):
+            try:
+                holder = holder_text(json.loads(os.pread(fd, 65536, 0).decode() or "{}"))
+            except ValueError:
+                holder = "holder unknown"
+            if holder == "holder unknown":
+                holder += f" (its {LOCK_FILE} record is empty or was deleted)"
             if not wait:
                 raise OutputError(f"{out} is locked by another generate run ({holder}); wait for it to finish, "
                                   f"or rerun with --wait to start when it is done") from None
             log(f"waiting for {out}: another generate run holds it ({holder})")
-            fcntl.flock(fd, fcntl.LOCK_EX)
+            for d in (folder, fd):
+                if d is not None:
+                    _flock(d, True)
         held = True
         info = {"pid": os.getpid(), "host": socket.gethostname(), "started": time.strftime("%Y-%m-%d %H:%M:%S"),
                 "command": " ".join(sys.argv)}
@@ -96,8 +132,11 @@ def output_lock(out: str, wait: bool = False, log: Callable[[str], None] = print
         yield
     finally:
         if held:
-            os.ftruncate(fd, 0)
-        os.close(fd)  # releases the lock
+            with contextlib.suppress(OSError):
+                os.ftruncate(fd, 0)
+        os.close(fd)  # releases the locks
+        if folder is not None:
+            os.close(folder)
 
 
 def check_output(recipe: Recipe, out: str, num_shards: int) -> None:
@@ -156,6 +195,7 @@ def prepare_shard(recipe: Recipe, out: str, shard: int, num_shards: int) -> dict
         if h is None or h["digest"] != recipe.digest:
             raise OutputError(f"{final} exists and is not a shard of this recipe (or is unreadable); "
                               f"use a fresh --out folder")
+        _remove_work(work)  # left by a run killed while it removed the folder after the rename
         return plan
     for name in os.listdir(out):  # an assembly that was cut short
         if name.startswith(os.path.basename(final) + ".tmp"):
@@ -173,11 +213,41 @@ def prepare_shard(recipe: Recipe, out: str, shard: int, num_shards: int) -> dict
 def finish_shard(recipe: Recipe, plan: dict) -> str:
     """Assemble the shard file from its groups (temporary name, then rename); remove the work folder."""
     parts = [plan["path_of"](g) for g in plan["groups"]]
-    atomic_write(plan["final"], lambda tmp: copy_groups(recipe, parts, tmp, plan["shard"], plan["num_shards"]))
-    shutil.rmtree(plan["work"])
-    with contextlib.suppress(OSError):  # other shards may still be in progress there
-        os.rmdir(os.path.dirname(plan["work"]))
+
+    def assemble(tmp: str) -> None:
+        copy_groups(recipe, parts, tmp, plan["shard"], plan["num_shards"])
+        _read_back(tmp, recipe, plan)
+
+    atomic_write(plan["final"], assemble)
+    _remove_work(plan["work"])
     return plan["final"]
+
+
+def _read_back(tmp: str, recipe: Recipe, plan: dict) -> None:
+    """The assembled shard opens, holds exactly its groups' sequences, and its metadata is sound
+    (attributes only: cheap), before it is renamed into place."""
+    import h5py
+
+    from ams_torch.apps.data.metadata import metadata_problems
+
+    want = sorted(i for g in plan["groups"] for i in recipe.group_sequences(g))
+    h = read_header(tmp)
+    found = [] if h is not None and h["digest"] == recipe.digest and h["sequences"] == want else \
+        [f"its header lists {None if h is None else h['sequences'][:8]}, expected sequences {want[:8]}"]
+    if not found:
+        with h5py.File(tmp, "r") as f:
+            found = metadata_problems(f)
+    if found:
+        raise OSError(errno.EIO, f"{plan['final']}: the assembled shard does not read back: {found[0]}")
+
+
+def _remove_work(work: str) -> None:
+    """Remove a finished shard's work folder (and ``.partial`` when it is empty). A kill part-way
+    leaves some of it; :func:`prepare_shard` calls this again when it finds the shard complete."""
+    if os.path.isdir(work):
+        shutil.rmtree(work)
+    with contextlib.suppress(OSError):  # other shards may still be in progress there
+        os.rmdir(os.path.dirname(work))
 
 
 def generate_shard(recipe: Recipe, out: str, shard: int = 0, num_shards: int = 1, device=None,

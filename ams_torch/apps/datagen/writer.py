@@ -11,9 +11,11 @@ import numpy as np
 import torch
 
 from ams_torch import __version__
+from ams_torch.apps.atomic import check_writes, h5_file
 from ams_torch.apps.data import (FORMAT, FORMAT_VERSION, FRAME_DIGESTS, POSE_FIELDS, SPLITS, array_digest,
                                  sequence_checksum, sequence_name)
 from ams_torch.apps.data.format import alone_name, array_info
+from ams_torch.apps.data.metadata import ATTRS_DIGEST, attrs_digest
 from ams_torch.apps.datagen.simulate import guide_order, simulate_group
 from ams_torch.apps.recipe import Recipe
 
@@ -104,6 +106,7 @@ class _SequenceWriter:
         for k, val in attrs.items():
             self.g.attrs[k] = val
         self.g.attrs["checksum"] = sequence_checksum(self.digests)
+        self.g.attrs[ATTRS_DIGEST] = attrs_digest(self.g.attrs)  # last: covers every attribute above
 
 
 def _collider_mesh(c: dict):
@@ -181,13 +184,11 @@ def _collider_poses(run, t: float, head) -> tuple:
 
 def _write_group_file(recipe: Recipe, group: int, tmp: str, device=None) -> float:
     """Simulate batch group ``group`` into the HDF5 file ``tmp``. Returns ms/frame."""
-    import h5py
-
     writers: List[_SequenceWriter] = []
     guides, keep_v = max(recipe.guide_counts, default=0), recipe.store["velocities"]
     keep_mv = recipe.store["motion_velocities"]
     holder = {}
-    with h5py.File(tmp, "w") as h5:
+    with h5_file(tmp) as h5:  # a full disk is one OSError, not a crash of the HDF5 library
         def on_start(run, specs):
             holder["run"] = run
             rest = run.sim.model.rest_positions
@@ -220,6 +221,7 @@ def _write_group_file(recipe: Recipe, group: int, tmp: str, device=None) -> floa
             for b, w in enumerate(writers):
                 w.frame(k, x[b], None if v is None else v[b], {n: a[b] for n, a in small.items()},
                         None if mv is None else mv[b])
+            check_writes(h5)  # stop at the frame a write failed
 
         out = simulate_group(recipe, group, device=device, on_frame=on_frame, on_start=on_start, on_guides=on_guides,
                              on_initial=on_initial)
@@ -263,8 +265,9 @@ def copy_groups(recipe: Recipe, parts: List[str], tmp: str, shard: int, num_shar
     import h5py
 
     indices = []
-    with h5py.File(tmp, "w") as dst:
+    with h5_file(tmp) as dst:
         for j, p in enumerate(parts):
+            check_writes(dst)
             with h5py.File(p, "r") as src:
                 for name in sorted(k for k in src.keys() if k.startswith("seq_")):
                     src.copy(src[name], dst, name=name)
@@ -288,6 +291,7 @@ def copy_groups(recipe: Recipe, parts: List[str], tmp: str, shard: int, num_shar
                          split=_json(recipe.split_rules), shard=shard, num_shards=num_shards,
                          num_sequences=recipe.num_sequences, batch=recipe.batch, frames=recipe.frames,
                          sequences=np.asarray(indices, dtype=np.int64))
+        dst.attrs[ATTRS_DIGEST] = attrs_digest(dst.attrs)  # last: covers every attribute above
 
 
 def atomic_write(final: str, write: Callable[[str], None]) -> None:

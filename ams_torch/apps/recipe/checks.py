@@ -15,7 +15,8 @@ if TYPE_CHECKING:
     from ams_torch.apps.recipe.core import Recipe
 
 __all__ = ["STORE", "STORE_DEFAULTS", "SPLIT", "SPLITS", "SPLIT_DEFAULTS", "HOLD_OUT", "TOP", "check_top",
-           "check_sampler_values", "motion_types", "motion_common", "guide_counts"]
+           "check_sampler_values", "motion_types", "motion_common", "guide_counts", "sampled_scenes",
+           "check_recipe_memory"]
 
 SPLITS = ("train", "valid", "test")
 SPLIT_DEFAULTS = {"train": 0.8, "valid": 0.1, "test": 0.1}
@@ -154,18 +155,53 @@ def variants(recipe: "Recipe") -> list:
     return out
 
 
+def _base(recipe: "Recipe", cases: list) -> dict:
+    """Every sampler at its first option: the draws the variants of :func:`variants` replace."""
+    raw = recipe.raw
+    kind0 = next((o["kind"] for _, _, o in cases if "kind" in o), "static")
+    return {"g": first(raw.get("groom", {"kind": "sphere"})), "p": first(raw.get("params", {})),
+            "w": first({k: v for k, v in raw["wind"].items() if k != "probability"}) if "wind" in raw else None,
+            "kind": kind0, "margs": first({**motion_common(raw.get("motion", {})), **raw.get("motion", {}).get(kind0, {})}),
+            "c": first(raw.get("colliders", []))}
+
+
+def sampled_scenes(recipe: "Recipe") -> list:
+    """The validated scene of every value each sampler can produce (one sampler at a time, the
+    others at their first option, as :func:`check_sampler_values` checks them): e.g. to estimate
+    the largest run of a recipe before generating it."""
+    rng = np.random.default_rng(0)
+    cases = variants(recipe)
+    base = _base(recipe, cases)
+    out = []
+    for over in [{}] + [o for _, _, o in cases]:
+        d = {**base, **over}
+        motion = recipe._concrete_motion(d["kind"], d["margs"], rng, recipe.where)
+        out.append(recipe.make_scene(d["g"], d["p"], motion, d["w"], f"{recipe.name}/check", recipe.where,
+                                     colliders=d["c"]))
+    return out
+
+
+def check_recipe_memory(recipe: "Recipe", device=None, limit: Optional[int] = None) -> int:
+    """Refuse a recipe whose largest batch group (its sampler values' largest scene, ``batch``
+    sequences simulated together) needs more memory than is available (or ``limit`` bytes):
+    :func:`ams_torch.apps.scene.limits.check_memory` naming the estimate and its keys. Returns
+    the largest estimate (bytes)."""
+    from ams_torch.apps.scene.limits import check_memory, estimate_memory
+
+    itemsize = 8 if recipe.dtype_name == "float64" else 4
+    scenes = sampled_scenes(recipe)
+    largest = max(scenes, key=lambda sc: sum(b for b, _ in estimate_memory(sc, itemsize, recipe.batch).values()))
+    return check_memory(largest, itemsize, recipe.batch, device, limit, where=recipe.where)
+
+
 def check_sampler_values(recipe: "Recipe") -> None:
     """Validate the scene of every value each sampler of the recipe can produce, one sampler at
     a time, the others at their first option (first checked on its own: when that base is
     invalid, the sampler whose other option repairs it is named). Raises :class:`RecipeError`
     naming the key, the value and the problem: ``[groom].preset = 'mohak' (choice option 3 of 3): ...``."""
-    raw, where, rng = recipe.raw, recipe.where, np.random.default_rng(0)
+    where, rng = recipe.where, np.random.default_rng(0)
     cases = variants(recipe)
-    kind0 = next((o["kind"] for _, _, o in cases if "kind" in o), "static")
-    base = {"g": first(raw.get("groom", {"kind": "sphere"})), "p": first(raw.get("params", {})),
-            "w": first({k: v for k, v in raw["wind"].items() if k != "probability"}) if "wind" in raw else None,
-            "kind": kind0, "margs": first({**motion_common(raw.get("motion", {})), **raw.get("motion", {}).get(kind0, {})}),
-            "c": first(raw.get("colliders", []))}
+    base = _base(recipe, cases)
 
     def problem(over: dict) -> Optional[str]:
         d = {**base, **over}

@@ -15,11 +15,16 @@ from typing import Callable, Dict, Optional
 
 import numpy as np
 
+from ams_torch.apps.scene.limits import check_range
+
 __all__ = ["SceneError", "check_table", "check_rotation", "is_number", "number", "integer", "boolean", "one_of",
            "string", "vec3", "list_of", "file_path", "rotation", "transform", "ABSENT", "POSITIVE", "NONNEG",
            "ANY_NUMBER", "ROTATION_TOLERANCE", "UNITS"]
 
 ROTATION_TOLERANCE = 1e-5  #: max |RᵀR − I| of a rotation matrix in a scene file
+#: the largest magnitude of a non-integer number in a scene or recipe (float32 reaches 3.4e38: products
+#: of larger values overflow); keys with a physical bound have a tighter one (limits.RANGES)
+MAX_MAGNITUDE = 1e15
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}  #: file unit -> metres
 ABSENT = _ABSENT = object()  # no default: the key stays absent unless given
 _CAUGHT = (TypeError, ValueError, ArithmeticError, IndexError, KeyError, AttributeError, FileNotFoundError)
@@ -70,6 +75,9 @@ def number(lo: Optional[float] = None, hi: Optional[float] = None, *, open_lo: b
         ok = ok and (lo is None or (v > lo if open_lo else v >= lo)) and (hi is None or v <= hi)
         if not ok:
             ctx.fail(f"{key} must be {what}; got {_show(v)}")
+        if not integer and abs(v) > MAX_MAGNITUDE:
+            ctx.fail(f"{key} = {v!r} is outside what this library runs: a number's magnitude must be at most "
+                     f"{MAX_MAGNITUDE:g}")
         return v
 
     return check
@@ -109,6 +117,9 @@ def vec3(nonzero: bool = False):
             ctx.fail(f"{key} must be a list of three numbers; got {_show(v)}")
         if nonzero and not any(float(c) for c in v):
             ctx.fail(f"{key} must be non-zero; got {_show(v)}")
+        if any(abs(c) > MAX_MAGNITUDE for c in v):
+            ctx.fail(f"{key} = {_show(v)} is outside what this library runs: a number's magnitude must be at most "
+                     f"{MAX_MAGNITUDE:g}")
         return [float(c) for c in v]
 
     return check
@@ -199,6 +210,7 @@ def _table(d, spec: Dict[str, tuple], section: str, ctx) -> dict:
     for k, (check, default) in spec.items():
         if k in d:
             out[k] = check(d[k], prefix + k, ctx)
+            check_range(out[k], prefix + k, ctx.fail)  # sizes and magnitudes this library runs
         elif default is not _ABSENT:
             out[k] = copy.deepcopy(default)
     return out

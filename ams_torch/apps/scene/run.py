@@ -13,12 +13,16 @@ from ams_torch.apps.scene.build import BuiltScene, trim_strands
 __all__ = ["simulate"]
 
 
-def simulate(run: BuiltScene, frames: Optional[int] = None, progress: bool = False, on_frame=None) -> dict:
-    """Run a built scene. Returns a dict: ``positions`` (F, S, N, 3) float32 numpy (world, m),
+def simulate(run: BuiltScene, frames: Optional[int] = None, progress: bool = False, on_frame=None,
+             record=None, keep: bool = True) -> dict:
+    """Run a built scene. Returns a dict: ``positions`` (F, S, N, 3) float32 numpy (world, m; only
+    with ``keep``, else frames go to ``record`` alone and at most one frame is held in memory),
     ``rotations`` (F, 3, 3), ``translations`` (F, 3) m, ``ms_per_frame`` {stage: ms} (``solve``:
     the AMS integration incl. inextensibility; ``hair_hair``, ``collisions``, ``wind``; means over
     frames 2..F when F > 1; ``trim``: its one-off cost), ``first_frame_ms`` (the first frame's
-    wall time: it loads the native kernels) and the final ``state``. ``on_frame(k, state)`` is called after each frame."""
+    wall time: it loads the native kernels) and the final ``state``. ``on_frame(k, state)`` is called after each frame;
+    ``record(k, arrays)`` with the frame's ``positions`` (S, N, 3) float32, ``rotations``, ``translations``
+    (and ``collider_rotations``, ``collider_translations`` with colliders), e.g. to stream them to a file."""
 
     sim = run.sim
     scene = run.scene
@@ -82,13 +86,18 @@ def simulate(run: BuiltScene, frames: Optional[int] = None, progress: bool = Fal
             state = sim.step(state, pose, external_force=wind, collider_poses=cposes, timer=timer)
         sync()
         wall += time.perf_counter() - t0
-        xs.append(state.x.detach().to("cpu", torch.float32).numpy())
+        x = state.x.detach().to("cpu", torch.float32).numpy()
+        if keep:
+            xs.append(x)
         rots.append(state.pose.rotation.detach().cpu().numpy())
         trans.append(state.pose.translation.detach().cpu().numpy())
         if specs:
             cr, ct = _collider_world_poses(specs, scene_motions, t_end, state.pose)
             crots.append(cr)
             ctrans.append(ct)
+        if record is not None:
+            record(k, {"positions": x, "rotations": rots[-1], "translations": trans[-1],
+                       **({"collider_rotations": crots[-1], "collider_translations": ctrans[-1]} if specs else {})})
         if on_frame is not None:
             on_frame(k, state)
         if k == 0:  # the first frame loads the native kernels and warms caches: reported apart
@@ -104,8 +113,10 @@ def simulate(run: BuiltScene, frames: Optional[int] = None, progress: bool = Fal
     ms = {k: 1e3 * v / (timed if k != "trim" else 1) for k, v in timings.items()}
     ms["total"] = 1e3 * wall / timed
     run.sim = sim
-    out = {"positions": np.stack(xs), "rotations": np.stack(rots), "translations": np.stack(trans),
+    out = {"rotations": np.stack(rots), "translations": np.stack(trans),
            "ms_per_frame": ms, "first_frame_ms": first_ms, "state": state}
+    if keep:
+        out["positions"] = np.stack(xs)
     if specs:
         out["collider_rotations"], out["collider_translations"] = np.stack(crots), np.stack(ctrans)
     return out

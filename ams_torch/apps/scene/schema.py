@@ -30,6 +30,7 @@ import tomllib
 from typing import Optional
 
 from ams_torch.apps.motion import make_motion
+from ams_torch.geometry.sdf import MAX_RESOLUTION
 from ams_torch.apps.scene.checks import (_ABSENT, ABSENT, ANY_NUMBER, NONNEG, POSITIVE, ROTATION_TOLERANCE,  # noqa: F401
                                          UNITS, SceneError, _construct, _Ctx, _show, _table, boolean, check_rotation,
                                          check_table, file_path, integer, is_number, list_of, number, one_of,
@@ -81,7 +82,7 @@ def _head_mesh(v, key, ctx):
 
 
 HEAD = {"mesh": (_head_mesh, "default"), "subdivisions": (integer(1, 8), 4), "radius": (POSITIVE, 0.1),
-        "collide": (boolean, _ABSENT), "sdf_resolution": (integer(8, 1024), 64), **_IMPORT}
+        "collide": (boolean, _ABSENT), "sdf_resolution": (integer(8, MAX_RESOLUTION), 64), **_IMPORT}
 
 
 def _head(raw, ctx) -> dict:
@@ -258,6 +259,21 @@ TOP = {"name": (string, "scene"), "description": (string, _ABSENT), "frames": (i
                                 "trim", "render")}}
 
 
+#: the deepest nesting of tables and arrays a scene or recipe file may have
+MAX_DEPTH = 32
+
+
+def _depth(value) -> int:
+    """How deeply tables and arrays nest in ``value`` (iteratively: no recursion limit)."""
+    deepest, stack = 0, [(value, 0)]
+    while stack:
+        v, d = stack.pop()
+        deepest = max(deepest, d)
+        if d <= MAX_DEPTH:
+            stack.extend((c, d + 1) for c in (v.values() if isinstance(v, dict) else v if isinstance(v, list) else ()))
+    return deepest
+
+
 def read_toml(path: str, kind: str, error=None, overrides: Optional[dict] = None) -> dict:
     """Read a TOML file as a dict with ``name`` defaulting to the file stem and ``overrides``
     replacing top-level keys; a missing file or bad TOML raises ``error`` (default
@@ -266,10 +282,15 @@ def read_toml(path: str, kind: str, error=None, overrides: Optional[dict] = None
     if not os.path.isfile(path):
         raise error(f"{path}: no such {kind} file")
     with open(path, "rb") as f:
-        try:
-            raw = tomllib.load(f)
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
-            raise error(f"{path}: not valid TOML: {err}") from None
+        data = f.read()
+    try:
+        raw = tomllib.loads(data.decode("utf-8-sig"))  # a UTF-8 byte-order mark, as some editors write, is fine
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
+        raise error(f"{path}: not valid TOML: {err}") from None
+    except RecursionError:
+        raise error(f"{path}: not valid TOML here: tables or arrays nested too deeply") from None
+    if _depth(raw) > MAX_DEPTH:
+        raise error(f"{path}: tables or arrays nested more than {MAX_DEPTH} levels deep; a {kind} needs a few")
     raw.setdefault("name", os.path.splitext(os.path.basename(path))[0])
     raw.update(overrides or {})
     return raw

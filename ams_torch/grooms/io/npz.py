@@ -125,8 +125,12 @@ def read_npz(path):
         raise fail(path, f"corrupt groom .npz: metadata is a JSON {type(meta).__name__}, expected an object")
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise fail(path, f"corrupt groom .npz: points have shape {pts.shape}, expected (P, 3)")
-    if counts.ndim != 1 or (len(counts) and (counts.min() < 0 or counts.max() > len(pts))) or \
-            int(counts.sum()) != len(pts):
+    if counts.ndim != 1:
+        raise fail(path, f"corrupt groom .npz: counts have shape {counts.shape}, expected (S,)")
+    if len(counts) and counts.min() < 0:
+        i = int(np.flatnonzero(counts < 0)[0])
+        raise fail(path, f"corrupt groom .npz: strand {i} has a negative point count ({int(counts[i])})")
+    if int(counts.sum()) != len(pts):
         raise fail(path, f"corrupt groom .npz: counts add up to {int(counts.sum())} but there are {len(pts)} points")
     s = len(counts)
     for key, (_, tail) in _BINDING.items():

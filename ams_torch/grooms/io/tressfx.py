@@ -60,20 +60,56 @@ def read_tfx(path):
     if 16 * s * v > len(data):
         raise fail(path, f"corrupt or truncated {WHAT} file: {s} strands × {v} vertices need {16 * s * v} bytes "
                          f"of positions, the file has {len(data)}")
+    arrays = _layout(path, len(data), s, v, off_pos, ((off_suv, (s, 2), "offsetStrandUV"),
+                                                      (off_vuv, (s, v, 2), "offsetVertexUV"),
+                                                      (off_thick, (s,), "offsetStrandThickness"),
+                                                      (off_col, (s, v, 4), "offsetVertexColor")))
     r = ByteReader(path, data, WHAT)
     r.seek(off_pos, "offsetVertexPosition")
     xyzw = r.array("<f4", 4 * s * v, f"the vertex positions ({s} strands × {v} vertices × float4)")
     xyzw = xyzw.reshape(s, v, 4)
     meta = dict(tfx_version=float(version), tfx_w=xyzw[..., 3].copy())
-    for off, key, shape, name in ((off_suv, "tfx_strand_uv", (s, 2), "offsetStrandUV"),
-                                  (off_vuv, "tfx_vertex_uv", (s, v, 2), "offsetVertexUV"),
-                                  (off_thick, "tfx_strand_thickness", (s,), "offsetStrandThickness"),
-                                  (off_col, "tfx_vertex_color", (s, v, 4), "offsetVertexColor")):
-        if off:
-            r.seek(off, name)
-            meta[key] = r.array("<f4", int(np.prod(shape)), f"the array at {name}").reshape(shape).copy()
+    keys = {"offsetStrandUV": "tfx_strand_uv", "offsetVertexUV": "tfx_vertex_uv",
+            "offsetStrandThickness": "tfx_strand_thickness", "offsetVertexColor": "tfx_vertex_color"}
+    for off, shape, name in arrays:
+        r.seek(off, name)
+        meta[keys[name]] = r.array("<f4", int(np.prod(shape)), f"the array at {name}").reshape(shape).copy()
     strands = list(xyzw[..., :3].astype(np.float32))
     return strands, meta
+
+
+def _layout(path, size: int, s: int, v: int, off_pos: int, optional) -> list:
+    """Check where the header puts the arrays: each optional one (offset, shape, header name)
+    after the header and overlapping no other, and every byte of the file after the header
+    belonging to an array (to within a strand's worth of padding). A lowered numHairStrands
+    leaves whole strands unread (AMD's Ratboy with 1114 of its 2228 strands): refused, as is an
+    offset into the header, which would read header bytes as UVs or colours. Returns the
+    optional arrays present, as (offset, shape, name)."""
+    spans = [(off_pos, off_pos + 16 * s * v, "offsetVertexPosition")]
+    present = []
+    for off, shape, name in optional:
+        if not off:
+            continue
+        if off < _HEADER.size:
+            raise fail(path, f"corrupt {WHAT} file: {name} = {off} points into the {_HEADER.size}-byte header")
+        end = off + 4 * int(np.prod(shape))
+        if end > size:
+            raise fail(path, f"corrupt or truncated {WHAT} file: the array at {name} ({shape} × float32) needs bytes "
+                             f"{off}..{end}, the file has {size}")
+        spans.append((off, end, name))
+        present.append((off, shape, name))
+    spans.sort()
+    for (a0, a1, an), (b0, b1, bn) in zip(spans, spans[1:]):
+        if b0 < a1:
+            raise fail(path, f"corrupt {WHAT} file: the arrays at {an} (bytes {a0}..{a1}) and {bn} (from {b0}) "
+                             f"overlap")
+    covered = sum(b - a for a, b, _ in spans)
+    unread = size - _HEADER.size - covered
+    if unread >= 16 * v:  # more than a strand's worth: the header's counts do not describe this file
+        raise fail(path, f"corrupt {WHAT} file: numHairStrands = {s} × {v} vertices leaves {unread} bytes of the "
+                         f"file unread (room for about {s + unread // (16 * v + 8 * bool(present))} strands); the "
+                         f"header's strand count does not match the file")
+    return present
 
 
 def default_vertex_count(n: int) -> int:
