@@ -5,7 +5,7 @@ seeds 0 … ``--seeds`` − 1) this grows each groom twice: as the preset is (wa
 clumps) and with ``clump_radius=0`` (every strand draws its own wave phase and shape, as before
 clumps existed). For every pair of strands whose roots are 8 ± 1 mm apart it averages the
 distance between their particles of the same index over the strand
-(:func:`ams_torch.grooms.growth.neighbour_distance`), and reports the mean over the pairs,
+(:func:`ams_torch.grooms.clumps.neighbour_distance`), and reports the mean over the pairs,
 split into pairs within one clump and across two clumps. The numbers do not depend on timing.
 
     PYTHONPATH=. python scripts/clump_study.py [--strands 3000] [--seeds 3] [--out docs/gallery/clumps.md]
@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from ams_torch.grooms.growth import clump_labels, neighbour_distance  # noqa: E402
+from ams_torch.grooms.clumps import clump_labels, neighbour_distance  # noqa: E402
 from ams_torch.grooms.head import default_head  # noqa: E402
 from ams_torch.grooms.presets import _PRESET_PARAMS, preset  # noqa: E402
 from ams_torch.geometry.sdf import SDFGrid  # noqa: E402
@@ -73,7 +73,7 @@ def main(argv=None):
         "(geometry only; no timing). Default head, each preset grown with seeds "
         f"0–{a.seeds - 1} at {a.strands} strands. For every pair of strands whose roots are 8 ± 1 mm apart: "
         "the distance between their particles of the same index, averaged over the strand "
-        "(`ams_torch.grooms.growth.neighbour_distance`); the table gives the mean over the pairs, per seed.",
+        "(`ams_torch.grooms.clumps.neighbour_distance`); the table gives the mean over the pairs, per seed.",
         "'independent' is the preset with `clump_radius=0` (each strand draws its own wave phase and shape, "
         "as before clumps existed); 'clumped' the preset as it is (15 mm clumps sharing phase and shape with 5 % "
         "per-strand jitter, clump phases correlated over 4 cm).",

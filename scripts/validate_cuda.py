@@ -385,8 +385,10 @@ def step_ptxas(ctx: dict) -> dict:
     print(ptxas.table(found))
     spills = {k: v["spill_bytes"] for k, v in found[arch].items() if v["spill_bytes"]}
     regs = {k: v["registers"] for k, v in found[arch].items() if "frame_kernel" in k or "stage_kernel" in k
-            or "solve_kernel" in k}
-    status = "fail" if bad or spills else "pass"
+            or "solve_kernel" in k or "adjoint_kernel" in k}
+    if arch not in budget["arches"]:  # no budget to judge by: any spill fails
+        bad = [f"sm_{arch} {k}: spills {b} bytes" for k, b in spills.items()]
+    status = "fail" if bad else "pass"  # spills within the committed budget (docs/cuda.md) pass
     return {"status": status, "arch": f"sm_{arch}", "spills": spills, "registers": regs, "over_budget": bad,
             "detail": f"sm_{arch}: {len(found[arch])} kernels, {len(spills)} spilling, {len(bad)} over budget"
                       + ("" if arch in budget["arches"] else " (no budget for this architecture)")}

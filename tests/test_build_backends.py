@@ -119,7 +119,11 @@ def test_native_refuses_a_dtype_without_kernels():
     from ams_torch import testing
     import ams_torch
 
+    from ams_torch.sim.backends import resolve_backend
+
     with pytest.raises(ValueError, match="no native kernels for cpu/torch.float16"):
+        resolve_backend("native", "cpu", torch.float16, hair_hair=False, colliders=0)
+    with pytest.raises(ValueError, match="dtype must be torch.float32 or torch.float64"):  # refused at the boundary
         ams_torch.Simulator(testing.sphere_groom(4, 6), dtype=torch.float16, backend="native")
 
 

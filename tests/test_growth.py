@@ -8,8 +8,8 @@ import trimesh
 
 import ams_torch.grooms.presets as presets
 from ams_torch.grooms.groom import Groom, resample_strands, strand_lengths
-from ams_torch.grooms.growth import (GrowthParams, _strand_draws, clump_labels, grow, grow_from_roots,
-                                     neighbour_distance)
+from ams_torch.grooms.clumps import clump_labels, neighbour_distance, strand_draws
+from ams_torch.grooms.growth import GrowthParams, grow, grow_from_roots
 from ams_torch.grooms.presets import preset
 
 
@@ -186,7 +186,7 @@ def test_clumps_cover_the_roots_and_members_share_their_draws():
     assert np.array_equal(labels, dist.argmin(1))  # each root joins its nearest centre ...
     assert dist.min(1).max() <= 0.012  # ... and every root is within the radius of one
     params = GrowthParams(clump_radius=0.012, clump_jitter=0.05, phase_jitter=math.pi, noise=0.4)
-    draws, lab = _strand_draws(np.random.default_rng(1), roots, params)
+    draws, lab = strand_draws(np.random.default_rng(1), roots, params)
     assert np.array_equal(lab, labels)
     for c in range(len(centres)):
         m = labels == c

@@ -15,7 +15,7 @@ per-strand helix phase, 0 unless ``phase_jitter`` is set (the paper has none, so
 curls in step with the others).
 
 Clumps. Real hair curls and waves in clumps: neighbouring strands run together. With
-``clump_radius`` r > 0 the roots are split into clumps by proximity (:func:`clump_labels`:
+``clump_radius`` r > 0 the roots are split into clumps by proximity (:func:`~ams_torch.grooms.clumps.clump_labels`:
 clump centres are roots taken in farthest-point order until every root lies within r of one;
 each root joins its nearest centre), and every per-strand random draw (helix phase, helix-radius
 jitter, the noise of p_dir⁰, the length jitter) becomes ``(1 − w) × its clump's draw + w × its
@@ -95,6 +95,7 @@ from typing import Any, Dict, Optional
 import numpy as np
 import torch
 
+from ams_torch.grooms.clumps import clump_labels, neighbour_distance, strand_draws
 from ams_torch.grooms.groom import Groom, resample_strands, triangle_frames
 
 __all__ = ["GrowthParams", "ALIASES", "grow", "grow_from_roots", "sample_roots", "clump_labels",
@@ -257,62 +258,6 @@ def sample_roots(mesh, region="scalp", strands: Optional[int] = None, per_triang
     return dict(triangles=tri, barycentrics=bary, face_vertices=fv, positions=pos, normals=nrm)
 
 
-def clump_labels(roots, radius: float):
-    """Clumps of roots by proximity.
-
-    Clump centres are roots taken in farthest-point order (starting at the root nearest the
-    centroid; ties to the lowest index) until every root lies within ``radius`` of a centre;
-    each root joins its nearest centre (ties to the earlier centre). Deterministic.
-
-    Args:
-        roots: (S, 3) metres.
-        radius: r > 0, metres: the largest root–centre distance of a clump.
-    Returns:
-        ``(labels (S,) int64 in [0, C), centres (C,) int64 root indices)``; ``labels[centres[c]] == c``.
-    """
-    r = np.asarray(roots, dtype=np.float64).reshape(-1, 3)
-    if not radius > 0:
-        raise ValueError(f"clump radius must be positive (m), got {radius!r}")
-    if len(r) == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    centres = [int(np.argmin(((r - r.mean(0)) ** 2).sum(1)))]
-    dist = ((r - r[centres[0]]) ** 2).sum(1)
-    labels = np.zeros(len(r), np.int64)
-    r2 = float(radius) ** 2
-    while True:
-        far = int(np.argmax(dist))
-        if dist[far] <= r2:
-            break
-        d = ((r - r[far]) ** 2).sum(1)
-        closer = d < dist
-        labels[closer] = len(centres)
-        dist = np.where(closer, d, dist)
-        centres.append(far)
-    return labels, np.asarray(centres, np.int64)
-
-
-def neighbour_distance(positions, root_distance: float = 0.008, tolerance: float = 0.001) -> tuple:
-    """How far apart strands whose roots are close stay along their length.
-
-    positions: (S, N, 3) metres (particle 0 the root). For every pair of strands whose roots are
-    ``root_distance`` ± ``tolerance`` metres apart, the distance between their particles of the
-    same index, averaged over the N particles; returns ``(mean over the pairs (m), pair count)``
-    (``(nan, 0)`` when no pair qualifies). Straight combed hair keeps neighbours close (≈ the
-    root distance plus the spread of root directions and lengths); strands whose waves are out
-    of phase are a wave amplitude apart.
-    """
-    x = np.asarray(positions.detach().cpu() if hasattr(positions, "detach") else positions, dtype=np.float64)
-    roots = x[:, 0]
-    total, count = 0.0, 0
-    for i in range(len(x) - 1):  # row by row: O(S) memory for any S
-        d = np.linalg.norm(roots[i + 1:] - roots[i], axis=1)
-        j = i + 1 + np.flatnonzero(np.abs(d - root_distance) <= tolerance)
-        if j.size:
-            total += float(np.linalg.norm(x[j] - x[i], axis=-1).mean(1).sum())
-            count += int(j.size)
-    return (total / count if count else float("nan")), count
-
-
 # --------------------------------------------------------------------------------------------
 # the growth recurrence
 # --------------------------------------------------------------------------------------------
@@ -468,40 +413,6 @@ def _resolve_lengths(length, roots: np.ndarray, normals: np.ndarray) -> Optional
     return out
 
 
-def _smooth_phase(theta: np.ndarray, centres: np.ndarray, length: float) -> np.ndarray:
-    """arg Σ_d exp(−|c − c_d|²/(2 length²)) e^{iθ_d} at every centre c: (C,) angles in (−π, π]."""
-    z = np.exp(1j * theta)
-    out = np.empty(len(theta))
-    for a in range(0, len(theta), 1024):  # rows in blocks: O(1024 C) memory
-        d2 = ((centres[a:a + 1024, None] - centres[None]) ** 2).sum(-1)
-        out[a:a + 1024] = np.angle(np.exp(-d2 / (2.0 * length * length)) @ z)
-    return out
-
-
-def _strand_draws(rng: np.random.Generator, roots: np.ndarray, params: GrowthParams) -> tuple:
-    """The per-strand random draws of :func:`grow`, in their fixed order: ``noise`` (S, 3) (scaled
-    by ``params.noise``), ``phase`` (S,) radians, ``radius_u`` (S,) in [−1, 1], ``length_u`` (S,)
-    in [0, 1). With ``clump_radius`` > 0 the clumps' draws follow (same kinds, (C, ...)) and each
-    strand's draw becomes (1 − w) × its clump's + w × its own (w = ``clump_jitter``).
-    Returns ``(draws, clumps)`` with ``clumps`` the (S,) clump labels, or None."""
-    s = len(roots)
-    draws = {"noise": rng.uniform(-1.0, 1.0, (s, 3)) * params.noise,
-             "phase": rng.uniform(-1.0, 1.0, s) * params.phase_jitter,
-             "radius_u": rng.uniform(-1.0, 1.0, s), "length_u": rng.random(s)}
-    if not params.clump_radius > 0:
-        return draws, None
-    labels, centres = clump_labels(roots, params.clump_radius)
-    c = len(centres)
-    shared = {"noise": rng.uniform(-1.0, 1.0, (c, 3)) * params.noise,
-              "phase": rng.uniform(-1.0, 1.0, c) * params.phase_jitter,
-              "radius_u": rng.uniform(-1.0, 1.0, c), "length_u": rng.random(c)}
-    if params.phase_length > 0 and params.phase_jitter > 0:
-        shared["phase"] = _smooth_phase(shared["phase"] * (math.pi / params.phase_jitter), roots[centres],
-                                        params.phase_length) * (params.phase_jitter / math.pi)
-    w = float(params.clump_jitter)
-    return {k: (1.0 - w) * shared[k][labels] + w * v for k, v in draws.items()}, labels
-
-
 def grow(mesh, region="scalp", strands: Optional[int] = None, particles: int = 32, seed: int = 0, *,
          per_triangle: Optional[int] = None, sdf=None, **growth_params) -> Groom:
     """Grow a groom on a mesh region with the procedural scheme of SPEC §9.
@@ -535,7 +446,7 @@ def grow(mesh, region="scalp", strands: Optional[int] = None, particles: int = 3
     rng = np.random.default_rng(seed)
     root = sample_roots(mesh, region, strands=strands, per_triangle=per_triangle, rng=rng)
     s = root["positions"].shape[0]
-    draws, clumps = _strand_draws(rng, root["positions"], params)
+    draws, clumps = strand_draws(rng, root["positions"], params)
     noise, phase, length_u = draws["noise"], draws["phase"], draws["length_u"]
     radius = params.helix_radius * (1.0 + draws["radius_u"] * params.helix_radius_jitter)
     if params.comb is not None:

@@ -131,6 +131,18 @@ def _shares(ratios: dict, n: int) -> List[int]:
     return counts
 
 
+def _units(recipe: "Recipe", by: str) -> List[int]:
+    """The split unit of every batch group: the group itself, or (``by = "groom"``) the first-seen
+    index of its groom, so every group of one groom is in one unit."""
+    if by != "groom":
+        return list(range(recipe.num_groups))
+    key_of = [json.dumps(recipe.group_spec(g)["groom"], sort_keys=True, default=str) for g in range(recipe.num_groups)]
+    first: Dict[str, int] = {}
+    for k in key_of:
+        first.setdefault(k, len(first))
+    return [first[k] for k in key_of]
+
+
 def compute_splits(recipe: "Recipe") -> Tuple[List[str], List[str], List[List[str]]]:
     """(split of every batch group, split of every sequence, hold-out tags of every sequence)
     following the rules of the module docstring. A group's split is that of its unit (the shares
@@ -139,15 +151,7 @@ def compute_splits(recipe: "Recipe") -> Tuple[List[str], List[str], List[List[st
     hold = rules.get("hold_out", {})
     ratios = recipe.split_ratios
     n_groups = recipe.num_groups
-    # units: batch groups, or every group of one groom together
-    if rules.get("by", "group") == "groom":
-        key_of = [json.dumps(recipe.group_spec(g)["groom"], sort_keys=True, default=str) for g in range(n_groups)]
-        first: Dict[str, int] = {}
-        for g, k in enumerate(key_of):
-            first.setdefault(k, len(first))
-        unit_of = [first[k] for k in key_of]
-    else:
-        unit_of = list(range(n_groups))
+    unit_of = _units(recipe, rules.get("by", "group"))
     n_units = max(unit_of) + 1 if unit_of else 0
     tagged = any(k in hold for k in ("groom_seed", "preset", "collider"))
     group_tags = [_group_tags(recipe, g, hold) if tagged else ([], []) for g in range(n_groups)]
