@@ -215,7 +215,8 @@ def render(records: list, cant: dict, meta: dict, out: Path) -> None:
         lines.append(f"- **{case['name']}**: {case['what']}.")
     head = " | ".join(f"N = {n}" for n in NS)
     lines += ["", f"| preset | material | M | {head} | N = {SHOWN} (not judged) | order | ratio {NS[0]}→{NS[-1]} "
-              f"| against N = {SHOWN}: {head} (ratio) | N = {REF_N} vs {CHECK_N} (× smallest) | time error (mm) "
+              f"| against N = {SHOWN}, N = {', '.join(str(n) for n in NS)} (ratio) | N = {REF_N} vs {CHECK_N} (× smallest) "
+              "| time error (mm) "
               "| targets |", "|---|---|---|" + "---|" * len(NS) + "---|---|---|---|---|---|---|"]
     for r in records:
         alt = r.get(f"against_{SHOWN}", {"rms_error_mm": [], "ratio": float("nan")})
