@@ -43,10 +43,11 @@ PROXY = 3.2768e-11  # N·m⁴: the bend/torsion rigidity of the per-particle def
 
 #: name → (what, Params changes)
 VARIANTS = {
-    "default": ("the library default: EA = 8e-3 N, geometric stiffness, no bend/torsion springs, ftl_damping 0.7",
+    "default": ("the library default: EA = 8e-3 N, geometric stiffness, no bend/torsion springs, ftl_damping 0.8",
                 {}),
     "ftl_damping_0.9": ("as default, ftl_damping = 0.9 (Müller's value, the previous default)",
                         {"ftl_damping": 0.9}),
+    "ftl_damping_0.7": ("as default, ftl_damping = 0.7", {"ftl_damping": 0.7}),
     "spec_form": ("as default, geometric stiffness off (the SPEC form)", {"geometric_stiffness": False}),
     "springs": ("as default, bend and torsion springs B_b = B_t = 3.2768e-11 N·m⁴ (with the stretch coupling)",
                 {"bend_rigidity": PROXY, "torsion_rigidity": PROXY}),

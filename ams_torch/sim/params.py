@@ -153,8 +153,10 @@ class Params:
         ftl_damping: Müller et al. 2012 velocity-correction factor s_damping ∈ [0, 1]: the
             velocities gain (d_i − s d_{i+1}) / Δt from the corrections d. The local part
             s (d_{i+1} − d_i) vanishes only like the edge length, so it sets a first-order error in
-            N; 0.7 (Müller: 0.9) is the largest value that keeps the convergence study in N at
-            order ≥ 0.9 for the straight, wavy and curly presets (docs/material.md).
+            N; 0.8 (Müller: 0.9) keeps the convergence study in N at order ≥ 0.9 and an N = 16 → 64
+            error ratio ≥ 4 for the straight, wavy and curly presets (docs/material.md). Lower
+            values widen a known instability of short frames (dt ≤ 1/500 s with κ_L/m ≈ 1e5–5e6 s⁻²
+            and M ≥ 2, present at 0.9 too): use 0.9 or more there.
         max_relative_speed: m/s; a particle faster than this relative to the head's
             rigid motion is reported as divergence.
         check_every: run the divergence guard every this many frames (0 = never; the
@@ -192,7 +194,7 @@ class Params:
     angular_reaction: bool = True  # see forces.angular_force: the one-way form flutters
     inextensibility: bool = True
     collision_inextensibility: int = 1
-    ftl_damping: float = 0.7
+    ftl_damping: float = 0.8
     max_relative_speed: float = 1.0e3
     check_every: int = 1
 
