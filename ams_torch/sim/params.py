@@ -150,6 +150,11 @@ class Params:
         collision_inextensibility: with colliders (and ``inextensibility``), this many rounds
             of edge-length restore (follow-the-leader) + push-out after the collision response,
             so contact does not leave stretched edges (see ``sim.step.collisions``); 0 = none.
+        contact: when the hair–solid contact response runs (SPEC §8): ``"frame"`` (the SPEC's
+            order: once per frame, after the substeps, follow-the-leader and hair–hair) or
+            ``"substep"`` (also after each substep's position update, with Δt' and the colliders
+            at that substep's pose, before the frame's own collision stage; see
+            docs/roller_coaster.md for what it does to convergence in M).
         ftl_damping: Müller et al. 2012 velocity-correction factor s_damping ∈ [0, 1]: the
             velocities gain (d_i − s d_{i+1}) / Δt from the corrections d. The local part
             s (d_{i+1} − d_i) vanishes only like the edge length, so it sets a first-order error in
@@ -194,6 +199,7 @@ class Params:
     angular_reaction: bool = True  # see forces.angular_force: the one-way form flutters
     inextensibility: bool = True
     collision_inextensibility: int = 1
+    contact: str = "frame"
     ftl_damping: float = 0.8
     max_relative_speed: float = 1.0e3
     check_every: int = 1
@@ -256,6 +262,8 @@ class Params:
                 or self.collision_inextensibility < 0:
             raise ValueError(f"Params.collision_inextensibility must be a non-negative integer; "
                              f"got {self.collision_inextensibility!r}")
+        if self.contact not in ("frame", "substep"):
+            raise ValueError(f"Params.contact must be 'frame' or 'substep'; got {self.contact!r}")
         if not 0.0 <= self.ftl_damping <= 1.0:
             raise ValueError(f"Params.ftl_damping must lie in [0, 1]; got {self.ftl_damping}")
         if not self.max_relative_speed > 0:
