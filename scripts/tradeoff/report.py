@@ -5,6 +5,7 @@ from pathlib import Path
 
 from tradeoff.choose import PRESET_NAMES, RESOLVE, decisive_errors, find, floor_mm, geomean, index, library_presets, ms
 from tradeoff.energy_report import energy_section
+from tradeoff.runs import convergence_slopes
 from tradeoff.scenes import BASE, SCENE_TEXT, STAGES, setting_label
 
 
@@ -169,7 +170,7 @@ def findings(records, infos, slopes, args) -> list[str]:
     for sc in scenes:
         jm, jn = args.joint[sc]
         best = min((r for r in records if r["scene"] == sc and "joint" in r["axes"] and r.get("rms_error_mm")
-                    and not r["settings"].get("gs")), key=lambda r: r["rms_error_mm"], default=None)
+                    and bool(r["settings"].get("gs")) == BASE["gs"]), key=lambda r: r["rms_error_mm"], default=None)
         if best:
             f.append(f"**Joint grid ({sc})**: the most accurate point is {setting_label(best['settings'])} at "
                      f"{fmt(best['rms_error_mm'])} mm and {fmt(ms(best))} ms/frame native (the base: {fmt(rms(sc))} mm, "
@@ -217,7 +218,8 @@ def choice_section(records, chosen, args, infos) -> list[str]:
          + ", ".join(f"`{p}` ≤ {args.budgets[p]:g}×" for p in PRESET_NAMES)
          + " the native ms/frame of the library default) and takes, on each axis, the cheapest option whose error is "
          "within 5 % of the lowest error that fits in its budget:", "",
-         "1. M and N jointly, over the joint grid (float32, every stage on, 64³ grid, geometric stiffness off): cost = the "
+         "1. M and N jointly, over the joint grid (float32, every stage on, 64³ grid, the library's geometric stiffness): "
+         "cost = the "
          "**largest** over all the scenes (a cost needs no reference, so every scene counts) of the native ms/frame "
          "relative to the scene's default (a preset must fit its budget in every scene: on the native path a small "
          "scene's frame is mostly fixed per-frame overhead, and a mean would let it hide a large scene's cost), error "
@@ -228,28 +230,28 @@ def choice_section(records, chosen, args, infos) -> list[str]:
          + ("" if any(g for g in [c.get("grid") for c in [chosen[p] for p in PRESET_NAMES]]) else
             "No voting scene has hair–hair in this run, so the presets keep the library's grid."),
          "3. The dtype: the dtype sweep (largest cost ratio, geometric mean of the error ratio).",
-         "4. Geometric stiffness, at the chosen (M, N): on only if it lowers the error by more than 5 % within the "
-         "budget (off is the SPEC form and the library default; timing noise alone must not switch it on). Its "
-         "points are listed below for comparison.", "",
+         "4. Geometric stiffness, at the chosen (M, N): the library's default (" + ("on" if BASE["gs"] else "off")
+         + ") unless the other choice lowers the error by more than 5 % within the budget (timing noise alone must not "
+         "switch it). Its points are listed below for comparison.", "",
          "| M | N | geometric stiffness | cost (× default) | error (× default) | on the front | preset |",
          "|---:|---:|---|---:|---:|---|---|"]
     front = {(x["substeps"], x["particles"], x["gs"]) for x in chosen["_front"]}
     by = index(records)
     gs_rows = []
     for pt in chosen["_points"]:
-        on = [find(by, sc, _grid(infos, sc), substeps=pt["substeps"], particles=pt["particles"], gs=True)
+        on = [find(by, sc, _grid(infos, sc), substeps=pt["substeps"], particles=pt["particles"], gs=not BASE["gs"])
               for sc in chosen["_scenes"]]
         off = [find(by, sc, _grid(infos, sc), substeps=pt["substeps"], particles=pt["particles"])
                for sc in chosen["_scenes"]]
         if all(on) and all(off):
-            gs_rows.append(dict(pt, gs=True, error=pt["error"] * geomean(
+            gs_rows.append(dict(pt, gs=not BASE["gs"], error=pt["error"] * geomean(
                 [a["rms_error_mm"] / b["rms_error_mm"] for a, b in zip(on, off)]), cost=None))
     for pt in sorted(chosen["_points"] + gs_rows, key=lambda x: (x["substeps"], x["particles"], x["gs"])):
         k = (pt["substeps"], pt["particles"], pt["gs"])
         tag = ", ".join(p for p in PRESET_NAMES if (chosen[p]["substeps"], chosen[p]["particles"], chosen[p]["gs"]) == k)
-        L.append(f"| {k[0]} | {k[1]} | {'on' if k[2] else ''} | {fmt(pt['cost'], 3)} | {pt['error']:.3f} | "
+        L.append(f"| {k[0]} | {k[1]} | {'on' if k[2] else 'off'} | {fmt(pt['cost'], 3)} | {pt['error']:.3f} | "
                  f"{'yes' if k in front else ''} | {tag} |")
-    near = [f"({x['substeps']}, {x['particles']}{', GS' if x['gs'] else ''}) at {x['cost']:.2f}× against `{p}`'s "
+    near = [f"({x['substeps']}, {x['particles']}{'' if x['gs'] else ', SPEC'}) at {x['cost']:.2f}× against `{p}`'s "
             f"{args.budgets[p]:g}×" for x in chosen["_front"] for p in PRESET_NAMES
             if abs(x["cost"] / args.budgets[p] - 1) <= 0.15]
     if near:
@@ -258,7 +260,7 @@ def choice_section(records, chosen, args, infos) -> list[str]:
     return L + [""]
 
 
-def convergence_section(slopes, args) -> list[str]:
+def convergence_section(slopes, args, contact_slopes=None) -> list[str]:
     L = ["## Convergence in substeps", "", "![RMS error against substeps](tradeoff_convergence.png)", "",
          f"The substeps sweep (N = {BASE['particles']}, float32, every stage on) against the scene's reference and "
          f"against a *time reference*, float64 at the same N = {BASE['particles']} (and 64³ grid) with many substeps, "
@@ -271,7 +273,19 @@ def convergence_section(slopes, args) -> list[str]:
             L.append(f"| {sc} | time reference (M = {d.get('time_reference_substeps')}) | "
                      + " | ".join(fmt(terrs.get(m)) for m in args.substeps) + f" | {fmt(d['slope'], 2)} |")
         L.append(f"| {sc} | reference | " + " | ".join(fmt(errs.get(m)) for m in args.substeps) + " | |")
-    return L + ["", "RMS error in mm. `tests/test_tradeoff.py` checks the first-order fall on a small wisp.", ""]
+        c = (contact_slopes or {}).get(sc)
+        if c:
+            cerrs = dict(zip(c["substeps"], c["rms_error_mm"]))
+            cterrs = dict(zip(c["substeps"], c["time_rms_error_mm"]))
+            if any(cterrs.values()):
+                L.append(f"| {sc}, contact at the substep rate | time reference (M = "
+                         f"{c.get('time_reference_substeps')}, same contact) | "
+                         + " | ".join(fmt(cterrs.get(m)) for m in args.substeps) + f" | {fmt(c['slope'], 2)} |")
+            L.append(f"| {sc}, contact at the substep rate | reference | "
+                     + " | ".join(fmt(cerrs.get(m)) for m in args.substeps) + " | |")
+    return L + ["", "RMS error in mm. *Contact at the substep rate*: `Params(contact=\"substep\")` (the reference keeps "
+                "the default, once per frame; docs/roller_coaster.md). `tests/test_tradeoff.py` checks the first-order "
+                "fall on a small wisp.", ""]
 
 
 def stages_section(records, infos) -> list[str]:
@@ -344,7 +358,7 @@ def write_markdown(path: Path, records, infos, chosen, slopes, meta, args) -> No
           "Each point is one setting (native ms/frame, minimum over the repeats); the black step line is the scene's "
           "Pareto front; circled points are the presets; the dashed red line is the reference's resolution.", ""]
     L += choice_section(records, chosen, args, infos)
-    L += convergence_section(slopes, args)
+    L += convergence_section(slopes, args, convergence_slopes(records, infos, "substeps_contact"))
     L += stages_section(records, infos)
     L += method_section(records, infos, args)
     path.write_text("\n".join(L))
