@@ -113,6 +113,11 @@ VARIANTS = {
                                 "Hookean integrity, contact after every substep"),
     "no_yield_substep_contact": ({"params": {"contact": "substep"}}, {"plastic": False},
                                  "plastic update a no-op, contact after every substep"),
+    "hookean_no_ftl": ({"stages": {"nonhookean": False}, "params": {"inextensibility": False}}, {},
+                       "Hookean, no follow-the-leader (nor collision rounds), contact once per frame"),
+    "no_ftl_nonhookean_substep_contact": ({"params": {"contact": "substep", "inextensibility": False}}, {},
+                                          "the scene's non-Hookean integrity and yield, no follow-the-leader, contact "
+                                          "after every substep"),
     "no_ftl_substep_contact": ({"stages": {"nonhookean": False},
                                 "params": {"contact": "substep", "inextensibility": False}}, {},
                                "Hookean, no follow-the-leader (nor collision rounds), contact after every substep"),

@@ -117,9 +117,9 @@ def references_section(records, infos, args) -> list[str]:
          "softer material, so a capped N = 512 reference does not converge to the N ≤ 128 settings' material "
          "(measured on the wisp while preparing this run: N = 256 against N = 512 at M = 64 differs by 0.52 mm RMS "
          "capped, 0.063 mm uncapped). Its checks rerun it with half its substeps, with fewer particles, and with half "
-         "its substeps and geometric stiffness (which changes only the matrix, so it must converge to the same "
-         "motion; at half the substeps it measures that option's own first-order time error, so it is shown but not "
-         "counted in the reference's resolution). A scene votes on the presets only if the largest refinement "
+         "its substeps and the other choice of geometric stiffness (which changes only the matrix, so it must converge "
+         "to the same motion; at half the substeps it measures that choice's own first-order time error, so it is "
+         "shown but not counted in the reference's resolution). A scene votes on the presets only if the largest refinement "
          f"check difference (half the substeps, fewer particles) is at most {RESOLVE:g}× the "
          "smallest *decisive* error (the RMS errors of the joint-grid settings that cost at most the largest budget "
          "in that scene).", "",
@@ -129,7 +129,8 @@ def references_section(records, infos, args) -> list[str]:
         dec = decisive_errors(i, records, args.budgets)
         for c in i["checks"]:
             ratio = c.get("rms_error_mm") / min(dec) if dec and c.get("rms_error_mm") is not None else None
-            counted = "" if not c.get("settings", {}).get("gs") else " (not counted)"
+            same = bool(c.get("settings", {}).get("gs")) == bool(i["reference"].get("gs"))
+            counted = "" if same else " (not counted)"
             L.append(f"| {i['scene']} | {setting_label(i['reference'])} | {c['what']}: {setting_label(c['settings'])} | "
                      f"{fmt(c.get('rms_error_mm'))} | {fmt(c.get('max_error_mm'))} | {fmt(c.get('shape_error_mm'))} | "
                      f"{fmt(ratio, 2)}{counted} | {'yes' if i.get('votes') else 'no'} |")
