@@ -6,7 +6,9 @@ from pathlib import Path
 from tradeoff.choose import PRESET_NAMES, RESOLVE, decisive_errors, find, floor_mm, geomean, index, library_presets, ms
 from tradeoff.energy_report import energy_section
 from tradeoff.runs import convergence_slopes
-from tradeoff.scenes import BASE, SCENE_TEXT, STAGES, setting_label
+from tradeoff.scenes import BASE, OTHER_CONTACT, SCENE_TEXT, STAGES, setting_label
+
+CONTACT_TEXT = {"substep": "contact at the substep rate", "frame": "contact once per frame"}
 
 
 def fmt(v, digits=3) -> str:
@@ -279,14 +281,16 @@ def convergence_section(slopes, args, contact_slopes=None) -> list[str]:
             cerrs = dict(zip(c["substeps"], c["rms_error_mm"]))
             cterrs = dict(zip(c["substeps"], c["time_rms_error_mm"]))
             if any(cterrs.values()):
-                L.append(f"| {sc}, contact at the substep rate | time reference (M = "
+                L.append(f"| {sc}, {CONTACT_TEXT[OTHER_CONTACT]} | time reference (M = "
                          f"{c.get('time_reference_substeps')}, same contact) | "
                          + " | ".join(fmt(cterrs.get(m)) for m in args.substeps) + f" | {fmt(c['slope'], 2)} |")
-            L.append(f"| {sc}, contact at the substep rate | reference | "
+            L.append(f"| {sc}, {CONTACT_TEXT[OTHER_CONTACT]} | reference | "
                      + " | ".join(fmt(cerrs.get(m)) for m in args.substeps) + " | |")
-    return L + ["", "RMS error in mm. *Contact at the substep rate*: `Params(contact=\"substep\")` (the reference keeps "
-                "the default, once per frame; docs/roller_coaster.md). `tests/test_tradeoff.py` checks the first-order "
-                "fall on a small wisp.", ""]
+    return L + ["", f"RMS error in mm. The library's default is `Params(contact=\"{BASE['contact']}\")` "
+                f"({CONTACT_TEXT[BASE['contact']]}); the rows *{CONTACT_TEXT[OTHER_CONTACT]}* rerun the substeps sweep "
+                f"with `contact=\"{OTHER_CONTACT}\"` against a time reference of that mode (the scene's reference keeps "
+                "the default; docs/roller_coaster.md). `tests/test_tradeoff.py` checks the first-order fall on a small "
+                "wisp.", ""]
 
 
 def stages_section(records, infos) -> list[str]:

@@ -9,20 +9,20 @@ import numpy as np
 
 from tradeoff.choose import PRESET_NAMES, preset_setting
 from tradeoff.energy import EnergyProbe
-from tradeoff.scenes import (BASE, base_setting, errors_mm, has_stage, make_run, run_setting, scene_stages,
-                             setting_key, setting_label)
+from tradeoff.scenes import (BASE, OTHER_CONTACT, base_setting, errors_mm, has_stage, make_run, run_setting,
+                             scene_stages, setting_key, setting_label)
 from tradeoff.timing import Case, time_cases
 
 
 def sweep_settings(raw: dict, args) -> list[dict]:
-    """Each axis swept alone around the base, the substeps again with contact at the substep rate
-    (scenes with colliders), then the joint M × N grid (geometric stiffness off and on). Each
-    setting carries ``axes``: the sweeps it belongs to."""
+    """Each axis swept alone around the base, the substeps again with the other contact mode
+    (``OTHER_CONTACT``; scenes with colliders), then the joint M × N grid (geometric stiffness off
+    and on). Each setting carries ``axes``: the sweeps it belongs to."""
     hh = has_stage(raw, "hair_hair")
     base = base_setting(raw)
     cands = [(dict(base, substeps=m), "substeps") for m in args.substeps]
     if has_stage(raw, "collisions"):
-        cands += [(dict(base, substeps=m, contact="substep"), "substeps_contact") for m in args.substeps]
+        cands += [(dict(base, substeps=m, contact=OTHER_CONTACT), "substeps_contact") for m in args.substeps]
     cands += [(dict(base, particles=n), "particles") for n in args.particles]
     cands += [(dict(base, dtype=d), "dtype") for d in args.dtypes]
     cands += [(dict(base, grid=g), "grid") for g in (args.grids if hh else ())]
@@ -120,24 +120,22 @@ def run_scene(name: str, raw: dict, args, subset, log) -> tuple:
         res = run_setting(raw, s, subset, keep_at=None if subset is not None else k0)
         rec = make_record(name, raw, s, axes, res, ref_pts, subset)
         if ("substeps" in axes or "substeps_contact" in axes) and res["pts"] is not None:
-            kept[len(records)] = (res["pts"], s.get("contact", "frame"))
+            kept[len(records)] = (res["pts"], s.get("contact", BASE["contact"]))
         if res["pts"] is not None:
             states[setting_key(s)] = res["state"]
         records.append(rec)
         log(f"[{name}] {summary(rec)}")
     info["error_runs_wall_s"] = round(time.perf_counter() - t0, 1)
     # time discretisation alone: the substeps sweep against a float64 run at the same N with many substeps
-    # (one per contact mode: the substep-contact sweep against a substep-contact time reference)
+    # (one per contact mode: the other mode's sweep against a time reference of that mode)
     m_time = args.time_ref_substeps.get(name)
-    for contact in (("frame", "substep") if m_time else ()):
+    for contact in ((BASE["contact"], OTHER_CONTACT) if m_time else ()):
         mine = {i: x for i, (x, c) in kept.items() if c == contact}
         if not mine:
             continue
-        t_set = base_setting(raw, substeps=m_time, dtype="float64")
-        if contact == "substep":
-            t_set["contact"] = "substep"
+        t_set = base_setting(raw, substeps=m_time, dtype="float64", contact=contact)
         t_ref = run_setting(raw, t_set, subset)
-        info["time_reference" if contact == "frame" else "time_reference_contact"] = t_set
+        info["time_reference" if contact == BASE["contact"] else "time_reference_contact"] = t_set
         for i, x in (mine.items() if t_ref["pts"] is not None else ()):
             e = errors_mm(x, t_ref["pts"])
             records[i]["time_rms_error_mm"] = float(f"{e['rms_error_mm']:.5g}")
@@ -211,8 +209,8 @@ def run_presets(name: str, raw: dict, args, presets: dict, records: list, ref_pt
 
 
 def convergence_slopes(records: list[dict], infos: list[dict], axis: str = "substeps") -> dict:
-    """Per scene, the substeps sweep (base N, float32; ``axis="substeps_contact"``: with contact at
-    the substep rate): RMS error against the reference and against the same-N float64 time
+    """Per scene, the substeps sweep (base N, float32; ``axis="substeps_contact"``: with the other
+    contact mode, ``OTHER_CONTACT``): RMS error against the reference and against the same-N float64 time
     reference (of the same contact mode), and the least-squares slope of log(error) against
     log(M) for the latter over M ≤ M_time / 4. First order (backward Euler) gives −1."""
     out = {}

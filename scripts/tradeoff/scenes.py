@@ -32,7 +32,9 @@ DTYPES = {"float32": torch.float32, "float64": torch.float64}
 #: the library default: Params() (M = 1, per-length material, geometric stiffness on), 32 particles,
 #: float32, 64³ grid
 BASE = {"substeps": 1, "particles": 32, "dtype": "float32", "grid": 64, "gs": bool(at.Params().geometric_stiffness),
-        "off": []}
+        "off": [], "contact": at.Params().contact}
+#: the contact mode that is not the library's default (its own substeps sweep)
+OTHER_CONTACT = "frame" if BASE["contact"] == "substep" else "substep"
 FINE = {"wisp": 1025, "head": 257, "roller_coaster": 257}  # points of the fine polylines
 POINTS = 33  # material points per strand at which runs are compared
 #: What switching a stage off means: ``biphasic`` drops the AMS couplings (plain MS: ω_I² = A = 0,
@@ -98,19 +100,20 @@ def base_setting(raw: dict, **changes) -> dict:
 
 def setting_key(s: dict) -> tuple:
     return (s["substeps"], s["particles"], s["dtype"], s.get("grid"), bool(s.get("gs")),
-            tuple(sorted(s.get("off", ()))), tuple(sorted(s.get("params", {}).items())), s.get("contact", "frame"))
+            tuple(sorted(s.get("off", ()))), tuple(sorted(s.get("params", {}).items())), s.get("contact", BASE["contact"]))
 
 
 def setting_label(s: dict) -> str:
-    """Short text of a setting: ``M=4 N=32 float32 grid=64 SPEC -collisions SC`` (``SPEC``: geometric
-    stiffness off, the SPEC form; ``SC``: contact at the substep rate)."""
+    """Short text of a setting: ``M=4 N=32 float32 grid=64 SPEC -collisions FC`` (``SPEC``: geometric
+    stiffness off, the SPEC form; ``FC`` / ``SC``: contact once per frame / at the substep rate,
+    when it is not the library's default)."""
     out = f"M={s['substeps']} N={s['particles']} {s['dtype']}"
     if s.get("grid"):
         out += f" grid={s['grid']}"
     if not s.get("gs"):
         out += " SPEC"
-    if s.get("contact", "frame") == "substep":
-        out += " SC"
+    if s.get("contact", BASE["contact"]) != BASE["contact"]:
+        out += " SC" if s["contact"] == "substep" else " FC"
     for st in s.get("off", ()):
         out += f" -{st}"
     for k, v in sorted(s.get("params", {}).items()):
@@ -140,7 +143,7 @@ def _edited(raw: dict, setting: dict, strands: int | None = None) -> dict:
     if "biphasic" in off:
         params.update(integrity_rate=0.0, angular_rigidity=0.0, sag_free=False)
     params["geometric_stiffness"] = bool(setting.get("gs"))
-    params["contact"] = setting.get("contact", "frame")
+    params["contact"] = setting.get("contact", BASE["contact"])
     params.update(setting.get("params", {}))
     if strands is not None:
         r["groom"]["strands"] = strands
