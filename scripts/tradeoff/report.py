@@ -111,14 +111,16 @@ def _grid(infos, sc) -> bool:
     return next(i["grid"] for i in infos if i["scene"] == sc)
 
 
+NOT_RESOLVED_WHY = {"roller_coaster": "with follow-the-leader once per frame this scene does not converge in M, so no "
+                                      "finite reference resolves it (docs/roller_coaster.md)"}
+
+
 def references_section(records, infos, args) -> list[str]:
     L = ["## References and their own convergence", "",
          "Each scene's reference is float64 with substeps and particles refined beyond every setting (and a 128³ "
-         "grid where hair–hair runs), with `stiffness_cap` lifted: the cap (1000× the first edge's stiffness) binds "
-         "on segments shorter than about 1.4 mm, i.e. from N ≈ 256 on these 0.3 m strands, and there it makes a "
-         "softer material, so a capped N = 512 reference does not converge to the N ≤ 128 settings' material "
-         "(measured on the wisp while preparing this run: N = 256 against N = 512 at M = 64 differs by 0.52 mm RMS "
-         "capped, 0.063 mm uncapped). Its checks rerun it with half its substeps, with fewer particles, and with half "
+         "grid where hair–hair runs), with `stiffness_cap` lifted (it binds only with bend/torsion springs on short "
+         "segments, where it makes a softer material: docs/material.md; the library's default has none, so here it "
+         "changes nothing). Its checks rerun it with half its substeps, with fewer particles, and with half "
          "its substeps and the other choice of geometric stiffness (which changes only the matrix, so it must converge "
          "to the same motion; at half the substeps it measures that choice's own first-order time error, so it is "
          "shown but not counted in the reference's resolution). A scene votes on the presets only if the largest refinement "
@@ -144,7 +146,8 @@ def references_section(records, infos, args) -> list[str]:
             L.append(f"- **{i['scene']}**: the reference is resolved to {fmt(fl)} mm RMS; the smallest decisive error "
                      f"is {fmt(min(dec))} mm, so the ratio is {fl / min(dec):.2f} "
                      + ("(resolved: votes)." if i.get("votes") else
-                        "(**not resolved**: this scene does not vote; its errors are shown but rank nothing)."))
+                        "(**not resolved**: this scene does not vote; its errors are shown but rank nothing"
+                        + (f": {NOT_RESOLVED_WHY[i['scene']]}" if i["scene"] in NOT_RESOLVED_WHY else "") + ")."))
         for fail in i.get("reference_failed", []):
             L.append(f"- **The {i['scene']} reference at {setting_label(fail['settings'])} diverged** "
                      f"({fail['diverged'][:160]}); the reference is {setting_label(i['reference'])}.")
