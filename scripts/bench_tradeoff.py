@@ -65,7 +65,7 @@ def configure(args) -> None:
     args.grids = (32, 64) if q else (32, 64, 128)
     args.ref_grid = 64 if q else 128
     args.ref_cap = 1e12
-    args.ref_substeps = {"wisp": 8, "head": 4, "roller_coaster": 4} if q else {"wisp": 128, "head": 32,
+    args.ref_substeps = {"wisp": 8, "head": 4, "roller_coaster": 4} if q else {"wisp": 128, "head": args.head_ref_m,
                                                                              "roller_coaster": 64}
     args.ref_particles = {"wisp": 64, "head": 64, "roller_coaster": 64} if q else {"wisp": 512, "head": args.head_ref_n,
                                                                                   "roller_coaster": 256}
@@ -91,8 +91,9 @@ def main(argv=None) -> None:
     p.add_argument("--wait", type=float, default=0.0,
                    help="minutes to wait (polling every 60 s) for a quiet machine before starting: 1-minute load < 1.5 "
                         "and no other test suite or script of the project running")
-    p.add_argument("--head-strands", type=int, default=1000, help="strands of the head scene")
-    p.add_argument("--head-ref-n", type=int, default=256, help="particles of the head reference")
+    p.add_argument("--head-strands", type=int, default=500, help="strands of the head scene")
+    p.add_argument("--head-ref-n", type=int, default=512, help="particles of the head reference")
+    p.add_argument("--head-ref-m", type=int, default=64, help="substeps of the head reference")
     p.add_argument("--out", type=Path, help="output folder (default docs/; --quick: out/tradeoff_quick)")
     p.add_argument("--render-only", action="store_true", help="rewrite tradeoff.md and the plots from tradeoff.json")
     p.add_argument("--note", default="", help="a sentence added to tradeoff.md")

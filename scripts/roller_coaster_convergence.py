@@ -64,9 +64,12 @@ REPO = Path(__file__).resolve().parents[1]
 #: disturbed by edits made in the working tree while it runs.
 LIBRARY = Path(os.environ.get("AMS_TORCH_LIBRARY", str(REPO))).resolve()
 sys.path.insert(0, str(LIBRARY))
-# The variants are copies of the torch definition of the step; the library's own step (the check,
-# and every run of a variant without step options) must run the same path: torch everywhere.
-os.environ["AMS_TORCH_NATIVE"] = "0"
+# Variants with step options run a copy of the torch definition of the step (torch backend); the
+# check compares it with the library's step on the torch backend too (bit for bit). Variants
+# without step options (scene or Params edits only) run the library's own step on its default
+# backend (the native kernels, float64 parity ~1e-14): ``--torch`` puts everything on torch.
+if "--torch" in sys.argv:
+    os.environ["AMS_TORCH_NATIVE"] = "0"
 
 from ams_torch.apps.scene import build, load_scene  # noqa: E402
 import importlib  # noqa: E402
@@ -74,6 +77,7 @@ step_mod = importlib.import_module("ams_torch.sim.step")
 dynamics_mod = importlib.import_module("ams_torch.sim.dynamics")
 from ams_torch.sim.dynamics import frame_dynamics, inextensibility, substep_poses, substep_targets, _external  # noqa: E402
 from ams_torch.sim.assembly import assemble_system  # noqa: E402
+from ams_torch.sim.contact import substep_contact  # noqa: E402
 from ams_torch.sim.inextensibility import follow_the_leader as library_ftl  # noqa: E402
 from ams_torch.sim.model import coefficients  # noqa: E402
 from ams_torch.sim.state import State  # noqa: E402
@@ -103,6 +107,20 @@ VARIANTS = {
     "per_substep_yield": ({}, {"per_substep": ("yield",)}, "plastic update after every substep, the rest per frame"),
     "per_substep_contact": ({}, {"per_substep": ("contact",)},
                             "contact response + push-out after every substep (Δt'), the frame's stages kept"),
+    "substep_contact": ({"params": {"contact": "substep"}}, {},
+                        "the library's Params(contact=\"substep\"): the contact response after every substep"),
+    "hookean_substep_contact": ({"stages": {"nonhookean": False}, "params": {"contact": "substep"}}, {},
+                                "Hookean integrity, contact after every substep"),
+    "no_yield_substep_contact": ({"params": {"contact": "substep"}}, {"plastic": False},
+                                 "plastic update a no-op, contact after every substep"),
+    "hookean_no_ftl": ({"stages": {"nonhookean": False}, "params": {"inextensibility": False}}, {},
+                       "Hookean, no follow-the-leader (nor collision rounds), contact once per frame"),
+    "no_ftl_nonhookean_substep_contact": ({"params": {"contact": "substep", "inextensibility": False}}, {},
+                                          "the scene's non-Hookean integrity and yield, no follow-the-leader, contact "
+                                          "after every substep"),
+    "no_ftl_substep_contact": ({"stages": {"nonhookean": False},
+                                "params": {"contact": "substep", "inextensibility": False}}, {},
+                               "Hookean, no follow-the-leader (nor collision rounds), contact after every substep"),
     "frictionless": ({}, {"friction": 0.0}, "collider friction μ = 0 (library: 0.5)"),
     "no_frame_ftl": ({}, {"frame_ftl": False},
                      "no follow-the-leader after the substeps (the collision stage keeps its rounds)"),
@@ -240,8 +258,11 @@ def step_variant(model, state, control, config, timer=None, *, opts, stats):
                                                 stats)
     else:
         cfg = config if opts["frame_ftl"] else dataclasses.replace(config, inextensibility=False)
+        contact = None  # the library's Params(contact="substep"), as step.step passes it
+        if config.contact == "substep" and config.colliders:
+            contact = functools.partial(substep_contact, model, config, collider_poses=control.collider_poses)
         x, v = frame_dynamics(model, coeffs, cfg, state.x, state.v, state.ghost_rest, state.sag_offset, pose0,
-                              pose1, hermite, time_, control.external_force)
+                              pose1, hermite, time_, control.external_force, contact=contact)
         if config.colliders:
             x, v = collisions_variant(model, config, x, v, pose1, control.collider_poses, dt, opts, stats)
     v, diverged_frame, diverged_input = step_mod._finish(model, config, state, control, x, v, pose1)
@@ -284,13 +305,19 @@ def build_variant(name: str, substeps: int, frames: int, strands: int, particles
 
 
 def simulate_variant(name: str, substeps: int, frames: int, strands: int, particles: int, perturb: float = 0.0,
-                     library: bool = False) -> dict:
+                     library=False, force_copy: bool = False) -> dict:
     """One run. ``perturb``: m/s added to the initial velocity of every free particle (fixed random
-    directions). ``library``: run the library's own step instead of the copy (check). Returns
-    ``x`` (F, S, N, 3) float64 m, ``stats`` and ``wall_s``."""
+    directions). A variant with step options runs the copy of the step (torch backend), one without
+    the library's own step (default backend; the contact counts of ``stats`` come from the copy
+    only). ``library``: the library's step even so (``"torch"``: on the torch backend, the check);
+    ``force_copy``: the copy even without options (the check). Returns ``x`` (F, S, N, 3) float64 m,
+    ``stats`` and ``wall_s``."""
     run = build_variant(name, substeps, frames, strands, particles)
     sim = run.sim
-    opts = None if library else dict(DEFAULT_OPTS, **VARIANTS[name][1])
+    copy = (bool(VARIANTS[name][1]) or force_copy) and not library
+    opts = dict(DEFAULT_OPTS, **VARIANTS[name][1]) if copy else None
+    if copy or library == "torch":  # the copy is the torch definition: compare it on the torch backend
+        sim.config = dataclasses.replace(sim.config, backend="torch")
     stats = {"tests": 0, "inside": 0, "near": 0, "yield": 0}
     state = sim.initial_state()
     if perturb:
@@ -345,8 +372,8 @@ def study(args, log) -> dict:
                 "library": f"{LIBRARY}@{library_commit()}"}
     out = {"args": {k: v for k, v in vars(args).items() if k not in ("render_only",)}, "variants": {}}
     if args.check:
-        a = simulate_variant("base", 2, min(args.frames, 12), args.strands, args.particles)
-        b = simulate_variant("base", 2, min(args.frames, 12), args.strands, args.particles, library=True)
+        a = simulate_variant("base", 2, min(args.frames, 12), args.strands, args.particles, force_copy=True)
+        b = simulate_variant("base", 2, min(args.frames, 12), args.strands, args.particles, library="torch")
         same = bool(torch.equal(a["x"], b["x"]))
         out["copy_bit_identical"] = same
         log(f"check: the copy of the step is bit-identical to the library's over {a['x'].shape[0]} frames: {same}")
@@ -507,6 +534,7 @@ def main(argv=None):
     p.add_argument("--no-check", dest="check", action="store_false")
     p.add_argument("--quick", action="store_true", help="smoke run: 12 frames, 6 strands, M ≤ 4 vs 16")
     p.add_argument("--render-only", action="store_true")
+    p.add_argument("--torch", action="store_true", help="every run on the torch backend (AMS_TORCH_NATIVE=0)")
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     out_path = Path(args.out)

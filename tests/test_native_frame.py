@@ -88,6 +88,8 @@ def make_scene(dtype=F64, device="cpu", strands=13, particles=12, scenes=None, g
     rest = {"sphere": lambda: testing.sphere_groom(strands, particles, dtype=F64, seed=seed),
             "wisp": lambda: testing.wisp(strands, particles, seed=seed),
             "curly": lambda: testing.curly_strand(particles)}[groom]()
+    if params.get("material", "per_length") == "per_length":  # exercise the bend and torsion springs (off by default)
+        params = {"bend_rigidity": 3.2768e-11, "torsion_rigidity": 3.2768e-11, **params}
     sim = ams_torch.Simulator(rest, ams_torch.Params(**params), dtype=dtype, device=device)
     set_pinned(sim.model, num_pinned)
     dt = sim.config.dt

@@ -22,6 +22,8 @@ def test_scene_dir_has_the_paper_scenes():
 
 @pytest.mark.parametrize("path", SCENES, ids=lambda p: os.path.basename(p))
 def test_every_scene_runs_a_few_frames(path):
+    """Every shipped scene runs (scaled down) and keeps the physical property it is about
+    (:func:`_check_scene_physics`)."""
     if "shared/assets" in Path(path).read_text() and not (Path(__file__).resolve().parents[2] / "shared" / "assets").is_dir():
         pytest.skip("the scene reads real assets from ../shared/assets, which is not here")
     scene = load_scene(path, {"frames": 3})
@@ -34,7 +36,13 @@ def test_every_scene_runs_a_few_frames(path):
     scene["head"]["subdivisions"] = min(scene["head"]["subdivisions"], 3)
     scene["head"]["sdf_resolution"] = 32
     run = build(scene)
-    res = simulate(run)
+    contact = []  # the lowest signed distance of a free particle to any collider, per frame (m)
+
+    def on_frame(k, state):
+        if run.sim.colliders:
+            contact.append(_lowest_clearance(run, state, (k + 1) * run.sim.params.dt))
+
+    res = simulate(run, on_frame=on_frame)
     pos = res["positions"]
     assert pos.shape[0] == 3 and np.isfinite(pos).all()
     assert (run.sim.hair_hair_grid is not None) == scene["stages"]["hair_hair"]
@@ -42,6 +50,68 @@ def test_every_scene_runs_a_few_frames(path):
     assert set(res["ms_per_frame"]) >= {"solve", "total"}
     if scene["colliders"]:  # world poses of the scene's colliders, for drawing
         assert res["collider_translations"].shape == (3, len(scene["colliders"]), 3)
+    _check_scene_physics(scene, run, res, contact)
+
+
+def _lowest_clearance(run, state, t: float) -> float:
+    """min over free particles and colliders of σ(x) (m, negative inside) at the end of a frame."""
+    from ams_torch.stages.collide import collider_distances, resolve_world_poses
+
+    cols = list(run.sim.model.colliders)
+    cposes = [None if m is None else m(t, device=state.x.device, dtype=state.x.dtype) for m in run.collider_motions]
+    poses = resolve_world_poses(cols, state.pose, cposes if any(p is not None for p in cposes) else None)
+    sigma = collider_distances(state.x, cols, poses)  # (C, S, N)
+    free = torch.arange(state.x.shape[-2])[None, :] >= run.sim.model.num_pinned[:, None]
+    return float(torch.where(free, sigma, torch.full_like(sigma, float("inf"))).min())
+
+
+def _check_scene_physics(scene, run, res, contact) -> None:
+    """One physical property per scene, chosen by what the scene is about.
+
+    - with collisions: **the contact holds**: after every frame no free particle is inside a
+      collider by more than 0.1 mm (the collision stage ends with a push-out to σ = 0);
+    - with hair–hair interaction: **the grid transfer conserves momentum**: the stage applied to the
+      final state (every particle free) keeps Σ m v (to 1e-5 of Σ m |v|);
+    - ``single_strand`` (released horizontally, no sag-free offset): **it falls, no faster than
+      free fall**: the vertical momentum is negative and above −M g t;
+    - ``wisp_comparison``: **the AMS wisp keeps its rest shape** better than its plain mass-spring
+      copy (the scene's point: the MS copy sags) — rigidly aligned shape deviation.
+    Every scene: the pinned roots sit on the head's rest roots carried by its pose (to 1e-5 m)."""
+    state = res["state"]
+    model = run.sim.model
+    pinned = model.pinned
+    rooted = state.pose.to_world(model.rest_positions)
+    assert float((state.x - rooted).norm(dim=-1)[pinned].max()) <= 1e-5, "the pinned roots left the head"
+    if run.sim.colliders:
+        assert min(contact) >= -1e-4, f"a free particle ended {-min(contact) * 1e3:.3g} mm inside a collider"
+    if run.sim.hair_hair_grid is not None:
+        from ams_torch.sim.model import coefficients
+        from ams_torch.stages.hair_hair import hair_hair_stage
+
+        mass = coefficients(model).mass
+        _, v = hair_hair_stage(run.sim.hair_hair_grid, state.x, state.v, mass, state.pose, run.sim.params.dt)
+        before, after = (mass[..., None] * state.v).sum((0, 1)), (mass[..., None] * v).sum((0, 1))
+        scale = float((mass * state.v.norm(dim=-1)).sum())
+        assert float((after - before).norm()) <= 1e-5 * scale, "the hair–hair stage changed the momentum"
+    name = scene["name"]
+    if name == "single_strand":
+        mass = coefficients_mass(model)
+        total = float(mass.sum())
+        t = 3 * run.sim.params.dt
+        py = float((mass * state.v[..., 1]).sum())
+        assert -total * 9.81 * t <= py < 0, f"vertical momentum {py:.3g} (free fall: {-total * 9.81 * t:.3g})"
+    if name == "wisp_comparison":
+        from ams_torch.testing import shape_deviation
+
+        s = state.x.shape[0] // 2
+        dev = shape_deviation(state.x, model.rest_positions, align=True)
+        assert float(dev[:s].mean()) < 0.5 * float(dev[s:].mean()), (float(dev[:s].mean()), float(dev[s:].mean()))
+
+
+def coefficients_mass(model):
+    from ams_torch.sim.model import coefficients
+
+    return coefficients(model).mass
 
 
 def test_scene_without_stages_builds_neither():

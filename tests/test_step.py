@@ -168,11 +168,14 @@ def test_gradcheck_of_a_rollout_against_finite_differences():
     assert torch.autograd.gradcheck(rollout, (kappa, drag, x0), eps=1e-7, atol=1e-6, rtol=1e-4)
 
 
-def test_small_swing_pendulum_period_of_a_stiff_strand(capsys):
+@pytest.mark.parametrize("geometric,tolerance", [(False, 6e-4), (True, 5e-3)])
+def test_small_swing_pendulum_period_of_a_stiff_strand(capsys, geometric, tolerance):
     """A stiff short strand pinned only at its root swings as a rigid compound pendulum. Its rest
     shape is a planar zigzag, so edge and bending springs triangulate it (a straight chain has no
     linear bending stiffness and would swing as a chain). About the pivot, in the plane:
-    T = 2π √(I / (M g d)) (1 + θ₀²/16) with I = Σ m r², d the pivot–centre-of-mass distance."""
+    T = 2π √(I / (M g d)) (1 + θ₀²/16) with I = Σ m r², d the pivot–centre-of-mass distance.
+    The geometric stiffness (the default) lengthens the period at M = 2 (measured +0.40 %, against
+    −0.04 % for the SPEC form)."""
     n, seg, width, amp = 6, 0.02, 0.005, 0.05
     i = torch.arange(n, dtype=F64)
     pts = torch.stack((width * (i % 2), -seg * i, torch.zeros_like(i)), -1)
@@ -184,7 +187,7 @@ def test_small_swing_pendulum_period_of_a_stiff_strand(capsys):
 
     rest = (pts @ rot(-hang).T @ rot(amp).T)[None]
     p = at.Params(material="per_particle", stretch_stiffness=1e2, integrity_stiffness=0.0, angular_stiffness=0.0,
-                  drag=0.0, num_pinned=1, sag_free=False, dt=1 / 60, substeps=2)
+                  drag=0.0, num_pinned=1, sag_free=False, dt=1 / 60, substeps=2, geometric_stiffness=geometric)
     sim = at.Simulator(rest, p, dtype=F64)
     s = sim.initial_state()
     xs = []
@@ -200,10 +203,11 @@ def test_small_swing_pendulum_period_of_a_stiff_strand(capsys):
     inertia, arm = float((r[:, :2] ** 2).sum()), float(r.mean(0).norm())
     expected = 2 * math.pi * math.sqrt(inertia / (n * 9.81 * arm)) * (1 + amp ** 2 / 16)
     with capsys.disabled():
-        print(f"\n[pendulum] M = 2, dt = 1/60: period {period:.6f} s vs rigid body {expected:.6f} s "
+        print(f"\n[pendulum] M = 2, dt = 1/60, geometric stiffness {geometric}: period {period:.6f} s vs rigid body "
+              f"{expected:.6f} s "
               f"({period / expected - 1:+.4%}) over {len(cross) - 1} periods")
     assert len(cross) >= 3
-    assert abs(period / expected - 1) <= 6e-4
+    assert abs(period / expected - 1) <= tolerance
 
 
 def test_double_moves_the_whole_model():

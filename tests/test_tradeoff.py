@@ -111,7 +111,9 @@ def test_presets_are_validated_params():
 def test_a_scene_votes_only_when_its_reference_resolves_the_errors():
     from tradeoff.choose import RESOLVE, choose_presets, votes
 
-    def rec(scene, m, n, err, ms, gs=False):
+    from tradeoff.scenes import BASE
+
+    def rec(scene, m, n, err, ms, gs=BASE["gs"]):
         s = {"substeps": m, "particles": n, "dtype": "float32", "grid": None, "gs": gs, "off": []}
         return {"scene": scene, "settings": s, "axes": ["joint"], "rms_error_mm": err, "max_error_mm": err,
                 "shape_error_mm": err, "native": {"ms_min": ms, "ms_median": ms, "stages_median": {}}}

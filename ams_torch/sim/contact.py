@@ -11,9 +11,9 @@ from ams_torch.geometry.pose import Pose
 from ams_torch.sim.dynamics import inextensibility
 from ams_torch.sim.model import Model
 from ams_torch.sim.state import Config
-from ams_torch.stages.collide import collide
+from ams_torch.stages.collide import collide, resolve_world_poses
 
-__all__ = ["collisions_world"]
+__all__ = ["collisions_world", "substep_contact"]
 
 
 def collisions_world(model: Model, config: Config, x: torch.Tensor, v: torch.Tensor, head_pose: Pose,
@@ -30,3 +30,16 @@ def collisions_world(model: Model, config: Config, x: torch.Tensor, v: torch.Ten
             x, v = inextensibility(model, config, x, v, head_pose, config.dt)
             x, v = collide(x, v, 0.0, cols, world_poses, free=free)
     return x, v
+
+
+def substep_contact(model: Model, config: Config, x: torch.Tensor, v: torch.Tensor, head_pose: Pose, h,
+                    collider_poses=()) -> tuple:
+    """The contact response inside a substep (``Params(contact="substep")``): every collider in
+    order, at its world pose for the head pose ``head_pose`` at the substep's end (colliders that
+    follow the head move with it; the others take ``collider_poses``, the frame's, or their own),
+    with the substep's Δt' = ``h`` s: :func:`~ams_torch.stages.collide.collide` (velocity response,
+    position made consistent with it, push-out). x, v: (..., S, N, 3) m, m/s. Pinned particles are
+    never touched. Returns the new (x, v)."""
+    cols = list(model.colliders)
+    poses = resolve_world_poses(cols, head_pose, list(collider_poses) or None)
+    return collide(x, v, h, cols, poses, free=~model.pinned)

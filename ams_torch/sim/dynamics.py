@@ -86,7 +86,8 @@ def substep_system(model: Model, coeffs: Coefficients, config: Config, x: torch.
 
 def frame_dynamics(model: Model, coeffs: Coefficients, config: Config, x: torch.Tensor, v: torch.Tensor,
                    ghost_rest: torch.Tensor, sag_offset: torch.Tensor, pose0: Pose, pose1: Pose, hermite: bool,
-                   time: torch.Tensor, external_force: ExternalForce = None, poses: Optional[list] = None) -> tuple:
+                   time: torch.Tensor, external_force: ExternalForce = None, poses: Optional[list] = None,
+                   contact=None) -> tuple:
     """One frame of strand dynamics: M substeps and inextensibility (plain torch, differentiable).
 
     Args:
@@ -100,6 +101,10 @@ def frame_dynamics(model: Model, coeffs: Coefficients, config: Config, x: torch.
         external_force: see :data:`~ams_torch.sim.state.ExternalForce`.
         poses: the M + 1 substep poses (default :func:`substep_poses` of pose0, pose1; the native
             adjoint's op gives them, computed in torch so that their gradients reach the frame's poses).
+        contact: ``contact(x, v, pose, h) -> (x, v)`` run after every substep's position update
+            with the head pose at the substep's end (the frame's end pose, with its velocities,
+            after the last) and the substep length h (``Params(contact="substep")``:
+            :func:`ams_torch.sim.contact.substep_contact`); None: nothing.
     Returns:
         (x, v): (..., S, N, 3) after the substeps and follow-the-leader.
     """
@@ -119,6 +124,8 @@ def frame_dynamics(model: Model, coeffs: Coefficients, config: Config, x: torch.
         with record_function("ams_torch.solve"):
             v = solve_banded(blocks, rhs, check=False)
         x = torch.where(pinned, target, x + h * v)
+        if contact is not None:
+            x, v = contact(x, v, pose1 if s + 1 == m_sub else pb, h)
         y_a = y_b
         if nonhookean:
             offset = pb.rotate(sag_offset)

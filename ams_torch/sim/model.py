@@ -23,7 +23,7 @@ import torch
 from ams_torch.sim.params import Params
 
 __all__ = ["Model", "Coefficients", "coefficients", "check_rest_positions", "MIN_PARTICLES", "MATERIAL_FIELDS",
-           "sag_free_offset", "pinned_counts"]
+           "sag_free_offset", "pinned_counts", "stretch_coupling_factor", "coupled_bending"]
 
 MIN_PARTICLES = 4  # torsion springs couple i and i+3
 MIN_SEGMENT = 1e-9  # m; shorter rest segments are degenerate
@@ -48,9 +48,62 @@ _TERM_FIELDS = {
                      "integrity": ("integrity_stiffness",), "angular": ("angular_stiffness",),
                      "drag": ("drag", "particle_mass")},
     "per_length": {"mass": ("linear_density",), "edge": ("stretch_rigidity",),
-                   "bend": ("bend_rigidity", "stretch_rigidity"), "torsion": ("torsion_rigidity", "stretch_rigidity"), "integrity": ("integrity_rate", "linear_density"),
+                   "bend": ("bend_rigidity", "torsion_rigidity", "stretch_rigidity"),
+                   "torsion": ("bend_rigidity", "torsion_rigidity", "stretch_rigidity"),
+                   "integrity": ("integrity_rate", "linear_density"),
                    "angular": ("angular_rigidity",), "drag": ("drag", "linear_density")},
 }
+
+
+def coupled_bending(bend, torsion, edge):
+    """Small-deflection bending stiffness that bend and torsion springs give a curved strand whose
+    edges stretch (docs/material.md): per unit length and per c² (c the rest curvature), divided by
+    ℓ⁵, on a uniform planar arc of edge length ℓ: ``κ_b/4 + 4 κ_t − (κ_b + 6 κ_t)² / (κ_L + 4 κ_b + 9 κ_t)``.
+
+    bend, torsion, edge: stiffnesses κ_b, κ_t, κ_L of the springs (i, i+2), (i, i+3), (i, i+1),
+    N/m, broadcastable tensors or floats. The first two terms are the inextensible-edge stiffness
+    (a uniform curvature change δc moves the chords by −c ℓ³ δc / 2 and −2 c ℓ³ δc); the last is
+    what the strand saves by stretching its edges instead (the chords also resist stretch:
+    2 ℓ ε and 3 ℓ ε for a strain ε). Returns N/m, the shape of the broadcast."""
+    return bend / 4 + 4 * torsion - (bend + 6 * torsion) ** 2 / (edge + 4 * bend + 9 * torsion)
+
+
+def stretch_coupling_factor(ell, stretch_rigidity, bend_rigidity, torsion_rigidity):
+    """The factor s ≥ 1 by which the per-length material multiplies both spring kinds,
+    κ_b = s B_b / ℓ⁵ and κ_t = s B_t / ℓ⁵, so that :func:`coupled_bending` with edges
+    κ_L = EA / ℓ equals the inextensible-edge value of B_b / ℓ⁵, B_t / ℓ⁵: the curved strand's
+    small-deflection bending stiffness is then ``c² (B_b / 4 + 4 B_t)`` at every N, whatever the
+    ratio of the springs to the edges (docs/material.md).
+
+    With b = B_b/ℓ⁵, t = B_t/ℓ⁵, P = b/4 + 4t, R = 4b + 9t it is the positive root of
+    ``6.25 b t s² + P (κ_L − R) s − P κ_L = 0``: 1 for edges much stiffer than the springs, at most
+    2PR / (6.25 b t) (8.84 for B_b = B_t) for edges much softer. With B_t = 0 and springs stiffer than
+    a quarter of the edges the root is infinite (bend springs alone cannot stop the strand from
+    bending by stretching): the stiffness cap then binds. ell: (S, K) m, the springs' rest lengths
+    over their span; rigidities: EA (N) and B (N·m⁴), tensors or floats. Returns (S, K) in ell's
+    dtype (computed in float64: b² and κ_L² overflow float32 on short segments)."""
+    f64 = torch.float64
+    ell64 = ell.to(f64)
+    b, t, ea = (v.to(f64) if isinstance(v, torch.Tensor) else torch.tensor(float(v), dtype=f64, device=ell.device)
+                for v in (bend_rigidity, torsion_rigidity, stretch_rigidity))
+    b = b * ell64 ** -5
+    t = t * ell64 ** -5
+    kl = ea / ell64
+    p = b / 4 + 4 * t
+    lin = p * (kl - 4 * b - 9 * t)
+    none = p <= 0  # no springs: any factor (1)
+    sq = lin * lin + 25 * b * t * p * kl
+    disc = torch.sqrt(torch.where(none, torch.ones_like(sq), sq))
+    # the positive root without cancellation: 2 P κ_L / (lin + √disc) for lin ≥ 0, (√disc − lin) / (12.5 b t) else
+    a2 = 12.5 * b * t
+    positive = lin >= 0
+    bounded = ~none & (positive | (a2 > 0))
+    den = torch.where(positive, lin + disc, a2)
+    s = torch.where(positive, 2 * p * kl, disc - lin) / torch.where(bounded, den, torch.ones_like(den))
+    return torch.where(bounded, s, torch.where(none, torch.ones_like(s), torch.full_like(s, _UNBOUNDED))).to(ell.dtype)
+
+
+_UNBOUNDED = 1e20  # the factor where no finite one exists (the cap binds there)
 
 
 def _first_index(mask: torch.Tensor) -> tuple:
@@ -173,7 +226,8 @@ class Model(torch.nn.Module):
             self.register_buffer("length_share", total / 2)  # each particle's share of rest length, m
             self.register_buffer("inverse_edge", 1.0 / e)  # 1/l_i
             for k, name in ((2, "bend"), (3, "torsion")):  # 1/ℓ⁵, ℓ = the spring's rest length over its span
-                self.register_buffer(f"inverse_{name}5", (getattr(self, f"{name}_rest_length") / k) ** -5)
+                self.register_buffer(f"{name}_span_length", getattr(self, f"{name}_rest_length") / k)
+                self.register_buffer(f"inverse_{name}5", getattr(self, f"{name}_span_length") ** -5)
         else:
             self.register_buffer("segment_length", total / count)
         counts = pinned_counts(params, x)
@@ -275,10 +329,15 @@ def _compute_terms(model: Model, terms: set) -> dict:
         if "edge" in terms:
             out["edge"] = full("stretch_rigidity") * model.inverse_edge
         cap = model.stiffness_cap * full("stretch_rigidity") * model.inverse_edge  # cap × κ_L per edge
-        if "bend" in terms:
-            out["bend"] = torch.minimum(full("bend_rigidity") * model.inverse_bend5, cap[..., :-1])
-        if "torsion" in terms:
-            out["torsion"] = torch.minimum(full("torsion_rigidity") * model.inverse_torsion5, cap[..., :-2])
+        # κ = s B / ℓ⁵: s corrects for the springs' coupling with stretch (stretch_coupling_factor)
+        for name, k in (("bend", 1), ("torsion", 2)):
+            if name in terms:
+                ell = getattr(model, f"{name}_span_length")
+                ea = _pairs(full("stretch_rigidity"), k)
+                s = stretch_coupling_factor(ell, ea, _pairs(full("bend_rigidity"), k, ell.shape[-1]),
+                                            _pairs(full("torsion_rigidity"), k, ell.shape[-1]))
+                kappa = full(f"{name}_rigidity") * s * getattr(model, f"inverse_{name}5")
+                out[name] = torch.minimum(kappa, cap[..., :-k])
         if "integrity" in terms:
             out["integrity"] = full("integrity_rate") * mass
         if "angular" in terms:
@@ -288,6 +347,19 @@ def _compute_terms(model: Model, terms: set) -> dict:
     return out
 
 
+def _pairs(v: torch.Tensor, k: int, count: int = None) -> torch.Tensor:
+    """A per-edge (S, N−1) value on the springs that start at each particle ((S, N−1−k): the first
+    edge of each spring), or a per-spring value of another kind cut or padded to ``count`` springs
+    (the bending springs' value read at the torsion springs, or the reverse; the last spring repeats)."""
+    if v.dim() == 0 or v.shape[-1] == 1:
+        return v
+    if count is None:
+        return v[..., :v.shape[-1] - k]
+    if v.shape[-1] >= count:
+        return v[..., :count]
+    return torch.cat([v, v[..., -1:].expand(v.shape[:-1] + (count - v.shape[-1],))], -1)
+
+
 def coefficients(model: Model) -> Coefficients:
     """The model's per-term material coefficients (see :class:`Coefficients`).
 
@@ -295,7 +367,8 @@ def coefficients(model: Model) -> Coefficients:
     after ``.to()`` / ``load_state_dict``); terms of learnable or grad-carrying fields are
     computed here, so gradients come back to those fields. Per particle: bending/torsion are
     the edge stiffness times their scale, drag the rate times the mass. Per length (SPEC §13):
-    m_i = λ × share, κ_L = EA/l, κ_bend = B_b/ℓ⁵, κ_torsion = B_t/ℓ⁵, κ_I = ω_I² m, κ_α = A (the angular
+    m_i = λ × share, κ_L = EA/l, κ_bend = s B_b/ℓ⁵, κ_torsion = s B_t/ℓ⁵ (s: :func:`stretch_coupling_factor`,
+    capped at ``stiffness_cap`` × κ_L), κ_I = ω_I² m, κ_α = A (the angular
     rigidity: the same on every segment, since the potential ½ κ_α |e| θ² is per length already).
     """
     fixed = model._fixed_terms

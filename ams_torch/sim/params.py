@@ -18,11 +18,11 @@ __all__ = ["Params", "PARAM_PRESETS", "PAPER_UNITS"]
 #: :class:`~ams_torch.Simulator`, and the hair–hair grid resolution R (``HairHair(resolution=R)``)
 #: where the scene has hair–hair interaction.
 PARAM_PRESETS = {
-    "fast": {"params": {"substeps": 1},
+    "fast": {"params": {"substeps": 2},
              "settings": {"particles": 16, "dtype": "float32", "hair_hair_resolution": 32}},
-    "balanced": {"params": {"substeps": 16},
+    "balanced": {"params": {"substeps": 4},
                  "settings": {"particles": 32, "dtype": "float32", "hair_hair_resolution": 32}},
-    "accurate": {"params": {"substeps": 16},
+    "accurate": {"params": {"substeps": 4},
                  "settings": {"particles": 64, "dtype": "float32", "hair_hair_resolution": 32}},
 }
 
@@ -82,7 +82,8 @@ class Params:
     The per-particle defaults use a particle mass of 1e-6 kg (one simulated strand stands for
     a small wisp) and the stiffness-to-mass ratios of the paper's Table 1 defaults
     (κ_L/m = 1e6 s⁻², κ_I/m = 1e2 s⁻², κ_α/m = 1e2 s⁻² rad⁻¹); the per-length defaults are the same
-    material for 8 mm segments (32 particles on a 25 cm strand). :meth:`paper` gives the paper's
+    material for 8 mm segments (32 particles on a 25 cm strand), but for the bending and torsion
+    springs (off in the per-length default, see ``bend_rigidity``). :meth:`paper` gives the paper's
     own units (mass 1, per particle). Stiffness-type fields may be tensors (requiring grad, or
     per strand (S, 1)).
 
@@ -108,9 +109,13 @@ class Params:
             adjacent edge).
         stretch_rigidity: EA, N: κ_L,i = EA / l_i for edge i.
         bend_rigidity, torsion_rigidity: N·m⁴, rigidity proxies B_b, B_t of the springs
-            (i, i+2) and (i, i+3): κ_i = B / ℓ_i⁵ with ℓ_i the spring's rest length over its span
-            (2 or 3 edges), which keeps the small-deflection bending stiffness per unit length of
-            a curved rest shape, (k³/12)² κ ℓ⁵ c² for span k and curvature c, independent of N.
+            (i, i+2) and (i, i+3): κ_i = s B / ℓ_i⁵ with ℓ_i the spring's rest length over its span
+            (2 or 3 edges) and s the stretch-coupling factor (``sim.model.stretch_coupling_factor``),
+            which makes the small-deflection bending stiffness per unit length of a curved rest
+            shape of curvature c, c² (B_b/4 + 4 B_t), independent of N (docs/material.md; tested
+            against an Euler–Bernoulli cantilever). Default 0: under large deformation the springs'
+            response does not converge in N (measured in docs/material.md), and the biphasic
+            couplings keep the shape.
         integrity_rate: ω_I², s⁻²: κ_I,i = ω_I² m_i (a rate per unit mass).
         angular_rigidity: A, N (= N·m per rad² per metre): κ_α,i = A on every segment. The angular
             spring's potential ½ κ_α |e| θ² is already per unit length (|e| = l_i), so a constant
@@ -120,8 +125,8 @@ class Params:
         stiffness_cap: per-length material: a bending or torsion spring is never stiffer than this
             many times the stretch stiffness of its first edge. B / ℓ⁵ grows without bound on short
             segments (a 2 cm strand of 32 particles would get springs 1e5× its edges: a step float64
-            resolves but float32 does not); with the default rigidities the cap of 1000 binds only
-            on segments shorter than about 1.4 mm (1e2: 2.5 mm).
+            resolves but float32 does not); with B_b = B_t = 3.2768e-11 N·m⁴ (the per-particle
+            default's springs at 8 mm) the cap of 1000 binds on segments shorter than about 2.4 mm.
         root_length: m, per-length material: pin every particle within this rest arc length of
             the root (at least two: the root and its direction), instead of ``num_pinned``.
         integrity_length: m, per-length material: the length unit of the non-Hookean
@@ -135,8 +140,9 @@ class Params:
         geometric_stiffness: add the positive part of each spring's geometric stiffness,
             ``κ (1 − l/|d|)₊ (I − d̂d̂ᵀ)``, to the matrix (SPEC §4). The frozen-direction
             linearisation alone can gain energy in single steps with transverse motion (measured
-            up to +17 % of the current energy); with this option no step gains energy. Off by
-            default (the SPEC form); docs/tradeoff.md measures its cost and accuracy.
+            up to +17 % of the current energy); with this option no step gains energy. On by
+            default, by measurement: it halves the errors of the convergence study in N and makes
+            it first order (docs/material.md; False is the SPEC form).
         implicit_angular: add the angular spring's tangent stiffness κ_α/|e| (I − êêᵀ) to
             the matrix (SPD, keeps stiff angular springs stable at large dt).
         angular_reaction: apply the angular spring as a couple (−κ_α θ t̂ on x_i as well as
@@ -146,7 +152,20 @@ class Params:
         collision_inextensibility: with colliders (and ``inextensibility``), this many rounds
             of edge-length restore (follow-the-leader) + push-out after the collision response,
             so contact does not leave stretched edges (see ``sim.step.collisions``); 0 = none.
-        ftl_damping: Müller et al. 2012 velocity-correction factor s_damping ∈ [0, 1].
+        contact: when the hair–solid contact response runs (SPEC §8): ``"substep"`` (the default:
+            also after each substep's position update, with Δt' and the colliders at that
+            substep's pose, before the frame's own collision stage) or ``"frame"`` (the SPEC's
+            order only: once per frame, after the substeps, follow-the-leader and hair–hair).
+            Chosen by measurement: with head collisions it makes the errors in N fall at first
+            order (docs/material.md), and the contact itself converge in M
+            (docs/roller_coaster.md); it costs one contact pass per substep.
+        ftl_damping: Müller et al. 2012 velocity-correction factor s_damping ∈ [0, 1]: the
+            velocities gain (d_i − s d_{i+1}) / Δt from the corrections d. The local part
+            s (d_{i+1} − d_i) vanishes only like the edge length, so it sets a first-order error in
+            N; 0.8 (Müller: 0.9) keeps the convergence study in N at order ≥ 0.9 and an N = 16 → 64
+            error ratio ≥ 4 for the straight, wavy and curly presets (docs/material.md). Lower
+            values widen a known instability of short frames (dt ≤ 1/500 s with κ_L/m ≈ 1e5–5e6 s⁻²
+            and M ≥ 2, present at 0.9 too): use 0.9 or more there.
         max_relative_speed: m/s; a particle faster than this relative to the head's
             rigid motion is reported as divergence.
         check_every: run the divergence guard every this many frames (0 = never; the
@@ -167,8 +186,8 @@ class Params:
     material: str = "per_length"
     linear_density: Scalar = 1.25e-4
     stretch_rigidity: Scalar = 8e-3
-    bend_rigidity: Scalar = 3.2768e-11
-    torsion_rigidity: Scalar = 3.2768e-11
+    bend_rigidity: Scalar = 0.0
+    torsion_rigidity: Scalar = 0.0
     integrity_rate: Scalar = 1e2
     angular_rigidity: Scalar = 1e-4
     stiffness_cap: float = 1e3
@@ -179,12 +198,13 @@ class Params:
     gravity: Tuple[float, float, float] = (0.0, -9.81, 0.0)
     num_pinned: int = 2
     sag_free: bool = True
-    geometric_stiffness: bool = False
+    geometric_stiffness: bool = True
     implicit_angular: bool = True
     angular_reaction: bool = True  # see forces.angular_force: the one-way form flutters
     inextensibility: bool = True
     collision_inextensibility: int = 1
-    ftl_damping: float = 0.9
+    contact: str = "substep"
+    ftl_damping: float = 0.8
     max_relative_speed: float = 1.0e3
     check_every: int = 1
 
@@ -247,6 +267,8 @@ class Params:
                 or self.collision_inextensibility < 0:
             raise ValueError(f"Params.collision_inextensibility must be a non-negative integer; "
                              f"got {self.collision_inextensibility!r}")
+        if self.contact not in ("frame", "substep"):
+            raise ValueError(f"Params.contact must be 'frame' or 'substep'; got {self.contact!r}")
         if not 0.0 <= self.ftl_damping <= 1.0:
             raise ValueError(f"Params.ftl_damping must lie in [0, 1]; got {self.ftl_damping}")
         if not self.max_relative_speed > 0:
@@ -293,26 +315,36 @@ class Params:
 
     def to_per_length(self, segment_length: float) -> "Params":
         """The per-length material that equals this per-particle one on a strand of segments of
-        ``segment_length`` metres (docs/material.md): λ = m/l, EA = κ_L l, B = κ_L × scale × l⁵,
-        ω_I² = κ_I/m, A = κ_α, root length (num_pinned − 1) l, integrity length l.
+        ``segment_length`` metres (docs/material.md): λ = m/l, EA = κ_L l, B = κ_L × scale × l⁵ / s
+        (s the stretch-coupling factor of the per-length springs, :func:`~ams_torch.sim.model.
+        stretch_coupling_factor`, here from the springs' coupled bending stiffness), ω_I² = κ_I/m,
+        A = κ_α, root length (num_pinned − 1) l, integrity length l.
         Interior particles match exactly; the two end particles carry half a segment's mass in
         the per-length material. Tensor fields are converted elementwise."""
+        from ams_torch.sim.model import coupled_bending
+
         if self.material != "per_particle":
             raise ValueError("to_per_length converts a per_particle Params")
         ell = float(segment_length)
         if not ell > 0:
             raise ValueError(f"segment_length must be positive (m); got {segment_length!r}")
         m, k = self.particle_mass, self.stretch_stiffness
+        kb, kt = k * self.bend_scale, k * self.torsion_scale
+        target = kb / 4 + 4 * kt  # the inextensible-edge stiffness that the per-length springs reproduce
+        coupled = coupled_bending(kb, kt, k)
+        s = target / coupled if _min_value(target) > 0 else 1.0
         return replace(self, **{f: _DEFAULTS[f] for f in MATERIAL_ONLY["per_particle"]}).replace(
             material="per_length", linear_density=m / ell, stretch_rigidity=k * ell,
-                            bend_rigidity=k * self.bend_scale * ell ** 5, torsion_rigidity=k * self.torsion_scale * ell ** 5,
-                            integrity_rate=self.integrity_stiffness / m, angular_rigidity=self.angular_stiffness,
-                            root_length=(self.num_pinned - 1) * ell, integrity_length=ell)
+            bend_rigidity=kb * ell ** 5 / s, torsion_rigidity=kt * ell ** 5 / s,
+            integrity_rate=self.integrity_stiffness / m, angular_rigidity=self.angular_stiffness,
+            root_length=(self.num_pinned - 1) * ell, integrity_length=ell)
 
     def to_per_particle(self, segment_length: float) -> "Params":
         """The per-particle material that equals this per-length one on segments of
         ``segment_length`` metres (the inverse of :meth:`to_per_length`; the pinned count is the
-        particles within ``root_length``, at least 2)."""
+        particles within ``root_length``, at least 2; the stiffness cap is not applied)."""
+        from ams_torch.sim.model import stretch_coupling_factor
+
         if self.material != "per_length":
             raise ValueError("to_per_particle converts a per_length Params")
         ell = float(segment_length)
@@ -320,11 +352,16 @@ class Params:
             raise ValueError(f"segment_length must be positive (m); got {segment_length!r}")
         m = self.linear_density * ell
         k = self.stretch_rigidity / ell
+        s = stretch_coupling_factor(torch.tensor(ell, dtype=torch.float64), self.stretch_rigidity,
+                                    self.bend_rigidity, self.torsion_rigidity)
+        if not any(isinstance(v, torch.Tensor) for v in (self.stretch_rigidity, self.bend_rigidity,
+                                                         self.torsion_rigidity)):
+            s = float(s)
         return replace(self, **{f: _DEFAULTS[f] for f in MATERIAL_ONLY["per_length"]}).replace(
             material="per_particle", particle_mass=m, stretch_stiffness=k,
-                            bend_scale=self.bend_rigidity / (ell ** 5 * k), torsion_scale=self.torsion_rigidity / (ell ** 5 * k),
-                            integrity_stiffness=self.integrity_rate * m, angular_stiffness=self.angular_rigidity,
-                            num_pinned=max(2, 1 + int(math.floor(self.root_length / ell + 1e-9))))
+            bend_scale=s * self.bend_rigidity / (ell ** 5 * k), torsion_scale=s * self.torsion_rigidity / (ell ** 5 * k),
+            integrity_stiffness=self.integrity_rate * m, angular_stiffness=self.angular_rigidity,
+            num_pinned=max(2, 1 + int(math.floor(self.root_length / ell + 1e-9))))
 
     @staticmethod
     def paper(**changes) -> "Params":

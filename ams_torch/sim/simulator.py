@@ -172,7 +172,7 @@ class Simulator(torch.nn.Module):
                       angular=not off(ANGULAR_FIELD[params.material]), angular_reaction=params.angular_reaction,
                       implicit_angular=params.implicit_angular, geometric_stiffness=params.geometric_stiffness,
                       inextensibility=params.inextensibility, ftl_damping=float(params.ftl_damping),
-                      collision_rounds=int(params.collision_inextensibility),
+                      collision_rounds=int(params.collision_inextensibility), contact=params.contact,
                       projection_iterations=tuple(int(c.projection_iterations) for c in cols),
                       follow_head=tuple(bool(c.follow_head) for c in cols), hair_hair=hair_hair,
                       max_relative_speed=float(params.max_relative_speed),

@@ -113,6 +113,8 @@ class Config:
             :class:`~ams_torch.Params`.
         ftl_damping: Müller's velocity-correction factor of follow-the-leader.
         collision_rounds: rounds of edge-length restore + push-out after the contact response.
+        contact: "frame" or "substep" (``Params.contact``): whether the contact response also
+            runs after every substep.
         projection_iterations: push-out passes of each collider per call (a fixed number).
         follow_head: per collider, whether its pose is relative to the head.
         hair_hair: the hair–hair stage runs. colliders: number of colliders (0: no collision stage).
@@ -133,6 +135,7 @@ class Config:
     inextensibility: bool = True
     ftl_damping: float = 0.9
     collision_rounds: int = 1
+    contact: str = "frame"
     projection_iterations: Tuple[int, ...] = ()
     follow_head: Tuple[bool, ...] = ()
     hair_hair: bool = False

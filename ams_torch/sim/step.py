@@ -14,6 +14,7 @@ Profiler labels (``torch.profiler.record_function``): ``ams_torch.dynamics``,
 """
 from __future__ import annotations
 
+import functools
 from typing import Optional, Sequence
 
 import torch
@@ -21,11 +22,12 @@ from torch.profiler import record_function
 
 from ams_torch.geometry.pose import Pose
 from ams_torch.sim import forces
-from ams_torch.sim.contact import collisions_world
+from ams_torch.sim.contact import collisions_world, substep_contact
 from ams_torch.sim.dynamics import frame_dynamics
 from ams_torch.sim.finish import native_finish, pin_and_speed
 from ams_torch.sim.native import native_collisions, native_frame_dynamics
 from ams_torch.sim.native_grad import native_frame_dynamics_diff
+from ams_torch.sim.native_contact import native_frame_contact
 from ams_torch.sim.model import Coefficients, Model, coefficients
 from ams_torch.sim.state import Config, Control, State
 from ams_torch.stages.collide import resolve_world_poses
@@ -166,13 +168,18 @@ def step(model: Model, state: State, control: Control, config: Config, timer=Non
     # adjoint (sim/native_grad.py); the other stages take the torch definition
     adjoint = not native and config.backend == "native"
     speed = None
+    contact = None  # Params(contact="substep"): the contact response after every substep
+    if config.contact == "substep" and config.colliders:
+        contact = functools.partial(substep_contact, model, config, collider_poses=control.collider_poses)
     with stage("dynamics"):
         args = (model, coeffs, config, state.x, state.v, state.ghost_rest, state.sag_offset, pose0, pose1, hermite,
                 time, control.external_force)
-        if adjoint:
+        if adjoint and contact is None:  # the native adjoint covers the dynamics without substep contact
             x, v = native_frame_dynamics_diff(*args)
         elif not native:
-            x, v = frame_dynamics(*args)
+            x, v = frame_dynamics(*args, contact=contact)
+        elif contact is not None:
+            x, v = native_frame_contact(*args, collider_poses=control.collider_poses)
         elif config.hair_hair or config.colliders:
             x, v = native_frame_dynamics(*args)
         else:  # nothing runs after the dynamics: the frame's end is fused into its kernel

@@ -105,7 +105,8 @@ _BACKENDS = {
         "ams_torch_frame_cpu",
         ("frame/frame_cpu.cpp",),
         ("banded/banded_cholesky.h", "banded/banded_simd.h", "banded/interleave.h", "banded/thread_scratch.h",
-         "frame/lanes.h", "frame/ftl.h", "frame/finish.h", "frame/frame.h", "frame/frame_binding.h"),
+         "frame/lanes.h", "frame/ftl.h", "frame/finish.h", "frame/frame.h", "frame/frame_binding.h",
+         "collide/collide.h", "frame/contact_binding.h"),
         "ams_torch_frame_cpu",
         "cpu",
     ),
@@ -113,7 +114,8 @@ _BACKENDS = {
         "ams_torch_frame_cuda",
         ("frame/frame_cuda_binding.cpp", "frame/frame_cuda.cu"),
         ("banded/banded_cholesky.h", "frame/lanes.h", "frame/ftl.h", "frame/finish.h", "frame/frame.h",
-         "frame/frame_binding.h", "frame/frame_cuda.h", "frame/transpose_cuda.cuh", "cuda_common/launch_cuda.cuh"),
+         "frame/frame_binding.h", "frame/frame_cuda.h", "frame/transpose_cuda.cuh", "cuda_common/launch_cuda.cuh",
+         "collide/collide.h", "frame/contact_binding.h"),
         "ams_torch_frame_cuda",
         "cuda",
     ),
@@ -170,8 +172,9 @@ _ALL = {**_BACKENDS, **_SELFTEST, **emulation.emulated_specs({**_BACKENDS, **_SE
 #: How each stage of a frame whose inputs require grad runs on a native simulator (forward and
 #: adjoint): reported by native_status()["gradients"].
 GRADIENT_STAGES = {
-    "dynamics": "native forward and adjoint (frame_adjoint_cpu / frame_adjoint_cuda); the one-particle angular "
-                "form (angular_reaction=False) and a callable external force take the torch definition",
+    "dynamics": "native forward and adjoint (frame_adjoint_cpu / frame_adjoint_cuda) when the contact runs once per "
+                "frame or there are no colliders; with Params(contact='substep') and colliders, the one-particle "
+                "angular form (angular_reaction=False) or a callable external force: the torch definition",
     "hair_hair": "torch definition",
     "collisions": "torch definition",
     "finish": "torch definition",

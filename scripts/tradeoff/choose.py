@@ -60,11 +60,12 @@ def find(records_or_index, scene: str, raw_has_grid: bool, **kw):
 
 def floor_mm(info: dict) -> float | None:
     """The reference's resolution: the largest RMS difference between it and its refinement checks
-    (half its substeps, fewer particles). The geometric-stiffness check is not counted: it changes
-    the implicit step's matrix, so at half the substeps it measures that option's own (larger)
-    first-order time error, not how far the reference is from converged."""
+    (half its substeps, fewer particles). The check with the other choice of geometric stiffness is
+    not counted: it changes the implicit step's matrix, so at half the substeps it measures that
+    choice's own first-order time error, not how far the reference is from converged."""
+    ref_gs = info.get("reference", {}).get("gs")
     vals = [c["rms_error_mm"] for c in info.get("checks", []) if c.get("rms_error_mm") is not None
-            and not c.get("settings", {}).get("gs")]
+            and (ref_gs is None or "settings" not in c or bool(c["settings"].get("gs")) == bool(ref_gs))]
     return max(vals) if vals else None
 
 
@@ -98,7 +99,7 @@ def choose_presets(records: list[dict], infos: list[dict], scenes: list[str], bu
     lowest error that fits in the budget:
 
     1. substeps M and particles N jointly, over the joint grid measured in every scene (float32,
-       every stage on, the base grid, geometric stiffness off): cost = the largest over all scenes
+       every stage on, the base grid, the library's geometric stiffness): cost = the largest over all scenes
        of the native ms/frame relative to the scene's base (the preset must fit its budget in
        every scene; a small scene's frame is mostly fixed overhead on the native path, and a mean
        would let it hide the cost of a large one), error = the geometric mean over the voting
@@ -106,9 +107,9 @@ def choose_presets(records: list[dict], infos: list[dict], scenes: list[str], bu
     2. the hair–hair grid (voting scenes with hair–hair; the grid sweep at the base setting;
        cost = the base frame with the hair–hair stage's native time at that grid);
     3. the dtype (the dtype sweep at the base setting);
-    4. geometric stiffness, at the chosen (M, N): on only if it lowers the error (geometric mean
-       over the voting scenes) by more than ``tol`` within the budget (off is the SPEC form and the
-       library default: timing noise alone must not switch it on).
+    4. geometric stiffness, at the chosen (M, N): the library's default unless the other choice
+       lowers the error (geometric mean over the voting scenes) by more than ``tol`` within the
+       budget (timing noise alone must not switch it).
     """
     by = index(records)
     grid_of = {i["scene"]: i["grid"] for i in infos}
@@ -116,9 +117,9 @@ def choose_presets(records: list[dict], infos: list[dict], scenes: list[str], bu
     base = {sc: find(by, sc, grid_of[sc]) for sc in timed}
     joint = None
     for sc in timed:
-        keys = {(r["settings"]["substeps"], r["settings"]["particles"], False)
+        keys = {(r["settings"]["substeps"], r["settings"]["particles"], BASE["gs"])
                 for r in records if r["scene"] == sc and "joint" in r["axes"] and r.get("rms_error_mm") is not None
-                and ms(r) is not None and not r["settings"].get("gs")}
+                and ms(r) is not None and bool(r["settings"].get("gs")) == BASE["gs"]}
         joint = keys if joint is None else joint & keys
     keys = sorted(joint or [])
     pts = []
@@ -154,12 +155,13 @@ def choose_presets(records: list[dict], infos: list[dict], scenes: list[str], bu
                      geomean([r64["rms_error_mm"] / r32["rms_error_mm"] for r32, r64 in dt_pairs
                               if r32["scene"] in scenes]))]
             dtype = pick(opts, lambda o: o[1] * pts[i][0], lambda o: o[2], b, tol)[0]
-        on = {sc: find(by, sc, grid_of[sc], substeps=m, particles=n, gs=True) for sc in timed}
-        off = {sc: find(by, sc, grid_of[sc], substeps=m, particles=n) for sc in timed}
-        if all(on[sc] is not None and ms(on[sc]) is not None for sc in timed):
-            cost_on = max(ms(on[sc]) / ms(base[sc]) for sc in timed)
-            err_on = geomean([on[sc]["rms_error_mm"] / off[sc]["rms_error_mm"] for sc in scenes])
-            gs = err_on < 1 / (1 + tol) and cost_on <= b
+        other = {sc: find(by, sc, grid_of[sc], substeps=m, particles=n, gs=not BASE["gs"]) for sc in timed}
+        default = {sc: find(by, sc, grid_of[sc], substeps=m, particles=n) for sc in timed}
+        if all(other[sc] is not None and ms(other[sc]) is not None for sc in timed):
+            cost_other = max(ms(other[sc]) / ms(base[sc]) for sc in timed)
+            err_other = geomean([other[sc]["rms_error_mm"] / default[sc]["rms_error_mm"] for sc in scenes])
+            if err_other < 1 / (1 + tol) and cost_other <= b:
+                gs = not BASE["gs"]
         out[name] = {"substeps": m, "particles": n, "gs": gs, "dtype": dtype, "grid": grid, "cost": pts[i][0],
                      "error": pts[i][1], "budget": b}
     out["_front"] = [{"substeps": keys[i][0], "particles": keys[i][1], "gs": keys[i][2], "cost": pts[i][0],

@@ -5,7 +5,10 @@ from pathlib import Path
 
 from tradeoff.choose import PRESET_NAMES, RESOLVE, decisive_errors, find, floor_mm, geomean, index, library_presets, ms
 from tradeoff.energy_report import energy_section
-from tradeoff.scenes import BASE, SCENE_TEXT, STAGES, setting_label
+from tradeoff.runs import convergence_slopes
+from tradeoff.scenes import BASE, OTHER_CONTACT, SCENE_TEXT, STAGES, setting_label
+
+CONTACT_TEXT = {"substep": "contact at the substep rate", "frame": "contact once per frame"}
 
 
 def fmt(v, digits=3) -> str:
@@ -108,17 +111,19 @@ def _grid(infos, sc) -> bool:
     return next(i["grid"] for i in infos if i["scene"] == sc)
 
 
+NOT_RESOLVED_WHY = {"roller_coaster": "with follow-the-leader once per frame this scene does not converge in M, so no "
+                                      "finite reference resolves it (docs/roller_coaster.md)"}
+
+
 def references_section(records, infos, args) -> list[str]:
     L = ["## References and their own convergence", "",
          "Each scene's reference is float64 with substeps and particles refined beyond every setting (and a 128³ "
-         "grid where hair–hair runs), with `stiffness_cap` lifted: the cap (1000× the first edge's stiffness) binds "
-         "on segments shorter than about 1.4 mm, i.e. from N ≈ 256 on these 0.3 m strands, and there it makes a "
-         "softer material, so a capped N = 512 reference does not converge to the N ≤ 128 settings' material "
-         "(measured on the wisp while preparing this run: N = 256 against N = 512 at M = 64 differs by 0.52 mm RMS "
-         "capped, 0.063 mm uncapped). Its checks rerun it with half its substeps, with fewer particles, and with half "
-         "its substeps and geometric stiffness (which changes only the matrix, so it must converge to the same "
-         "motion; at half the substeps it measures that option's own first-order time error, so it is shown but not "
-         "counted in the reference's resolution). A scene votes on the presets only if the largest refinement "
+         "grid where hair–hair runs), with `stiffness_cap` lifted (it binds only with bend/torsion springs on short "
+         "segments, where it makes a softer material: docs/material.md; the library's default has none, so here it "
+         "changes nothing). Its checks rerun it with half its substeps, with fewer particles, and with half "
+         "its substeps and the other choice of geometric stiffness (which changes only the matrix, so it must converge "
+         "to the same motion; at half the substeps it measures that choice's own first-order time error, so it is "
+         "shown but not counted in the reference's resolution). A scene votes on the presets only if the largest refinement "
          f"check difference (half the substeps, fewer particles) is at most {RESOLVE:g}× the "
          "smallest *decisive* error (the RMS errors of the joint-grid settings that cost at most the largest budget "
          "in that scene).", "",
@@ -128,7 +133,8 @@ def references_section(records, infos, args) -> list[str]:
         dec = decisive_errors(i, records, args.budgets)
         for c in i["checks"]:
             ratio = c.get("rms_error_mm") / min(dec) if dec and c.get("rms_error_mm") is not None else None
-            counted = "" if not c.get("settings", {}).get("gs") else " (not counted)"
+            same = bool(c.get("settings", {}).get("gs")) == bool(i["reference"].get("gs"))
+            counted = "" if same else " (not counted)"
             L.append(f"| {i['scene']} | {setting_label(i['reference'])} | {c['what']}: {setting_label(c['settings'])} | "
                      f"{fmt(c.get('rms_error_mm'))} | {fmt(c.get('max_error_mm'))} | {fmt(c.get('shape_error_mm'))} | "
                      f"{fmt(ratio, 2)}{counted} | {'yes' if i.get('votes') else 'no'} |")
@@ -140,7 +146,8 @@ def references_section(records, infos, args) -> list[str]:
             L.append(f"- **{i['scene']}**: the reference is resolved to {fmt(fl)} mm RMS; the smallest decisive error "
                      f"is {fmt(min(dec))} mm, so the ratio is {fl / min(dec):.2f} "
                      + ("(resolved: votes)." if i.get("votes") else
-                        "(**not resolved**: this scene does not vote; its errors are shown but rank nothing)."))
+                        "(**not resolved**: this scene does not vote; its errors are shown but rank nothing"
+                        + (f": {NOT_RESOLVED_WHY[i['scene']]}" if i["scene"] in NOT_RESOLVED_WHY else "") + ")."))
         for fail in i.get("reference_failed", []):
             L.append(f"- **The {i['scene']} reference at {setting_label(fail['settings'])} diverged** "
                      f"({fail['diverged'][:160]}); the reference is {setting_label(i['reference'])}.")
@@ -169,7 +176,7 @@ def findings(records, infos, slopes, args) -> list[str]:
     for sc in scenes:
         jm, jn = args.joint[sc]
         best = min((r for r in records if r["scene"] == sc and "joint" in r["axes"] and r.get("rms_error_mm")
-                    and not r["settings"].get("gs")), key=lambda r: r["rms_error_mm"], default=None)
+                    and bool(r["settings"].get("gs")) == BASE["gs"]), key=lambda r: r["rms_error_mm"], default=None)
         if best:
             f.append(f"**Joint grid ({sc})**: the most accurate point is {setting_label(best['settings'])} at "
                      f"{fmt(best['rms_error_mm'])} mm and {fmt(ms(best))} ms/frame native (the base: {fmt(rms(sc))} mm, "
@@ -217,7 +224,8 @@ def choice_section(records, chosen, args, infos) -> list[str]:
          + ", ".join(f"`{p}` ≤ {args.budgets[p]:g}×" for p in PRESET_NAMES)
          + " the native ms/frame of the library default) and takes, on each axis, the cheapest option whose error is "
          "within 5 % of the lowest error that fits in its budget:", "",
-         "1. M and N jointly, over the joint grid (float32, every stage on, 64³ grid, geometric stiffness off): cost = the "
+         "1. M and N jointly, over the joint grid (float32, every stage on, 64³ grid, the library's geometric stiffness): "
+         "cost = the "
          "**largest** over all the scenes (a cost needs no reference, so every scene counts) of the native ms/frame "
          "relative to the scene's default (a preset must fit its budget in every scene: on the native path a small "
          "scene's frame is mostly fixed per-frame overhead, and a mean would let it hide a large scene's cost), error "
@@ -228,28 +236,28 @@ def choice_section(records, chosen, args, infos) -> list[str]:
          + ("" if any(g for g in [c.get("grid") for c in [chosen[p] for p in PRESET_NAMES]]) else
             "No voting scene has hair–hair in this run, so the presets keep the library's grid."),
          "3. The dtype: the dtype sweep (largest cost ratio, geometric mean of the error ratio).",
-         "4. Geometric stiffness, at the chosen (M, N): on only if it lowers the error by more than 5 % within the "
-         "budget (off is the SPEC form and the library default; timing noise alone must not switch it on). Its "
-         "points are listed below for comparison.", "",
+         "4. Geometric stiffness, at the chosen (M, N): the library's default (" + ("on" if BASE["gs"] else "off")
+         + ") unless the other choice lowers the error by more than 5 % within the budget (timing noise alone must not "
+         "switch it). Its points are listed below for comparison.", "",
          "| M | N | geometric stiffness | cost (× default) | error (× default) | on the front | preset |",
          "|---:|---:|---|---:|---:|---|---|"]
     front = {(x["substeps"], x["particles"], x["gs"]) for x in chosen["_front"]}
     by = index(records)
     gs_rows = []
     for pt in chosen["_points"]:
-        on = [find(by, sc, _grid(infos, sc), substeps=pt["substeps"], particles=pt["particles"], gs=True)
+        on = [find(by, sc, _grid(infos, sc), substeps=pt["substeps"], particles=pt["particles"], gs=not BASE["gs"])
               for sc in chosen["_scenes"]]
         off = [find(by, sc, _grid(infos, sc), substeps=pt["substeps"], particles=pt["particles"])
                for sc in chosen["_scenes"]]
         if all(on) and all(off):
-            gs_rows.append(dict(pt, gs=True, error=pt["error"] * geomean(
+            gs_rows.append(dict(pt, gs=not BASE["gs"], error=pt["error"] * geomean(
                 [a["rms_error_mm"] / b["rms_error_mm"] for a, b in zip(on, off)]), cost=None))
     for pt in sorted(chosen["_points"] + gs_rows, key=lambda x: (x["substeps"], x["particles"], x["gs"])):
         k = (pt["substeps"], pt["particles"], pt["gs"])
         tag = ", ".join(p for p in PRESET_NAMES if (chosen[p]["substeps"], chosen[p]["particles"], chosen[p]["gs"]) == k)
-        L.append(f"| {k[0]} | {k[1]} | {'on' if k[2] else ''} | {fmt(pt['cost'], 3)} | {pt['error']:.3f} | "
+        L.append(f"| {k[0]} | {k[1]} | {'on' if k[2] else 'off'} | {fmt(pt['cost'], 3)} | {pt['error']:.3f} | "
                  f"{'yes' if k in front else ''} | {tag} |")
-    near = [f"({x['substeps']}, {x['particles']}{', GS' if x['gs'] else ''}) at {x['cost']:.2f}× against `{p}`'s "
+    near = [f"({x['substeps']}, {x['particles']}{'' if x['gs'] else ', SPEC'}) at {x['cost']:.2f}× against `{p}`'s "
             f"{args.budgets[p]:g}×" for x in chosen["_front"] for p in PRESET_NAMES
             if abs(x["cost"] / args.budgets[p] - 1) <= 0.15]
     if near:
@@ -258,7 +266,7 @@ def choice_section(records, chosen, args, infos) -> list[str]:
     return L + [""]
 
 
-def convergence_section(slopes, args) -> list[str]:
+def convergence_section(slopes, args, contact_slopes=None) -> list[str]:
     L = ["## Convergence in substeps", "", "![RMS error against substeps](tradeoff_convergence.png)", "",
          f"The substeps sweep (N = {BASE['particles']}, float32, every stage on) against the scene's reference and "
          f"against a *time reference*, float64 at the same N = {BASE['particles']} (and 64³ grid) with many substeps, "
@@ -271,7 +279,21 @@ def convergence_section(slopes, args) -> list[str]:
             L.append(f"| {sc} | time reference (M = {d.get('time_reference_substeps')}) | "
                      + " | ".join(fmt(terrs.get(m)) for m in args.substeps) + f" | {fmt(d['slope'], 2)} |")
         L.append(f"| {sc} | reference | " + " | ".join(fmt(errs.get(m)) for m in args.substeps) + " | |")
-    return L + ["", "RMS error in mm. `tests/test_tradeoff.py` checks the first-order fall on a small wisp.", ""]
+        c = (contact_slopes or {}).get(sc)
+        if c:
+            cerrs = dict(zip(c["substeps"], c["rms_error_mm"]))
+            cterrs = dict(zip(c["substeps"], c["time_rms_error_mm"]))
+            if any(cterrs.values()):
+                L.append(f"| {sc}, {CONTACT_TEXT[OTHER_CONTACT]} | time reference (M = "
+                         f"{c.get('time_reference_substeps')}, same contact) | "
+                         + " | ".join(fmt(cterrs.get(m)) for m in args.substeps) + f" | {fmt(c['slope'], 2)} |")
+            L.append(f"| {sc}, {CONTACT_TEXT[OTHER_CONTACT]} | reference | "
+                     + " | ".join(fmt(cerrs.get(m)) for m in args.substeps) + " | |")
+    return L + ["", f"RMS error in mm. The library's default is `Params(contact=\"{BASE['contact']}\")` "
+                f"({CONTACT_TEXT[BASE['contact']]}); the rows *{CONTACT_TEXT[OTHER_CONTACT]}* rerun the substeps sweep "
+                f"with `contact=\"{OTHER_CONTACT}\"` against a time reference of that mode (the scene's reference keeps "
+                "the default; docs/roller_coaster.md). `tests/test_tradeoff.py` checks the first-order fall on a small "
+                "wisp.", ""]
 
 
 def stages_section(records, infos) -> list[str]:
@@ -344,7 +366,7 @@ def write_markdown(path: Path, records, infos, chosen, slopes, meta, args) -> No
           "Each point is one setting (native ms/frame, minimum over the repeats); the black step line is the scene's "
           "Pareto front; circled points are the presets; the dashed red line is the reference's resolution.", ""]
     L += choice_section(records, chosen, args, infos)
-    L += convergence_section(slopes, args)
+    L += convergence_section(slopes, args, convergence_slopes(records, infos, "substeps_contact"))
     L += stages_section(records, infos)
     L += method_section(records, infos, args)
     path.write_text("\n".join(L))

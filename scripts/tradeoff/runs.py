@@ -9,17 +9,20 @@ import numpy as np
 
 from tradeoff.choose import PRESET_NAMES, preset_setting
 from tradeoff.energy import EnergyProbe
-from tradeoff.scenes import (BASE, base_setting, errors_mm, has_stage, make_run, run_setting, scene_stages,
-                             setting_key, setting_label)
+from tradeoff.scenes import (BASE, OTHER_CONTACT, base_setting, errors_mm, has_stage, make_run, run_setting,
+                             scene_stages, setting_key, setting_label)
 from tradeoff.timing import Case, time_cases
 
 
 def sweep_settings(raw: dict, args) -> list[dict]:
-    """Each axis swept alone around the base, then the joint M × N grid (geometric stiffness off
+    """Each axis swept alone around the base, the substeps again with the other contact mode
+    (``OTHER_CONTACT``; scenes with colliders), then the joint M × N grid (geometric stiffness off
     and on). Each setting carries ``axes``: the sweeps it belongs to."""
     hh = has_stage(raw, "hair_hair")
     base = base_setting(raw)
     cands = [(dict(base, substeps=m), "substeps") for m in args.substeps]
+    if has_stage(raw, "collisions"):
+        cands += [(dict(base, substeps=m, contact=OTHER_CONTACT), "substeps_contact") for m in args.substeps]
     cands += [(dict(base, particles=n), "particles") for n in args.particles]
     cands += [(dict(base, dtype=d), "dtype") for d in args.dtypes]
     cands += [(dict(base, grid=g), "grid") for g in (args.grids if hh else ())]
@@ -39,7 +42,8 @@ def sweep_settings(raw: dict, args) -> list[dict]:
 
 def reference_setting(raw: dict, args, **kw) -> dict:
     s = {"substeps": args.ref_substeps[raw["name"]], "particles": args.ref_particles[raw["name"]],
-         "dtype": "float64", "grid": args.ref_grid if has_stage(raw, "hair_hair") else None, "gs": False, "off": [],
+         "dtype": "float64", "grid": args.ref_grid if has_stage(raw, "hair_hair") else None, "gs": BASE["gs"],
+         "off": [],
          "params": {"stiffness_cap": args.ref_cap}}
     s.update(kw)
     return s
@@ -73,7 +77,8 @@ def state_at(raw: dict, setting: dict, k0: int):
 
 def run_reference(name: str, raw: dict, args, subset, log) -> tuple:
     """The reference (float64) and its checks (half the substeps; fewer particles; half the
-    substeps with geometric stiffness). Returns (info, reference positions at material points)."""
+    substeps with the other choice of geometric stiffness). Returns (info, reference positions at
+    material points)."""
     ref_set, failed = reference_setting(raw, args), []
     while True:
         ref = run_setting(raw, ref_set, subset)
@@ -91,7 +96,8 @@ def run_reference(name: str, raw: dict, args, subset, log) -> tuple:
     m = ref_set["substeps"]
     checks = [("half the substeps", dict(ref_set, substeps=m // 2)),
               ("fewer particles", dict(ref_set, particles=args.ref_check_particles[name])),
-              ("half the substeps, geometric stiffness", dict(ref_set, substeps=m // 2, gs=True))]
+              ("half the substeps, " + ("SPEC form" if ref_set["gs"] else "geometric stiffness"),
+               dict(ref_set, substeps=m // 2, gs=not ref_set["gs"]))]
     for what, chk_set in checks[:args.ref_checks]:
         chk = run_setting(raw, chk_set, subset)
         e = errors_mm(chk["pts"], ref["pts"]) if chk["pts"] is not None else {}
@@ -113,25 +119,29 @@ def run_scene(name: str, raw: dict, args, subset, log) -> tuple:
         axes = s.pop("axes")
         res = run_setting(raw, s, subset, keep_at=None if subset is not None else k0)
         rec = make_record(name, raw, s, axes, res, ref_pts, subset)
-        if "substeps" in axes and res["pts"] is not None:
-            kept[len(records)] = res["pts"]
+        if ("substeps" in axes or "substeps_contact" in axes) and res["pts"] is not None:
+            kept[len(records)] = (res["pts"], s.get("contact", BASE["contact"]))
         if res["pts"] is not None:
             states[setting_key(s)] = res["state"]
         records.append(rec)
         log(f"[{name}] {summary(rec)}")
     info["error_runs_wall_s"] = round(time.perf_counter() - t0, 1)
     # time discretisation alone: the substeps sweep against a float64 run at the same N with many substeps
+    # (one per contact mode: the other mode's sweep against a time reference of that mode)
     m_time = args.time_ref_substeps.get(name)
-    if m_time:
-        t_set = base_setting(raw, substeps=m_time, dtype="float64")
+    for contact in ((BASE["contact"], OTHER_CONTACT) if m_time else ()):
+        mine = {i: x for i, (x, c) in kept.items() if c == contact}
+        if not mine:
+            continue
+        t_set = base_setting(raw, substeps=m_time, dtype="float64", contact=contact)
         t_ref = run_setting(raw, t_set, subset)
-        info["time_reference"] = t_set
-        for i, x in (kept.items() if t_ref["pts"] is not None else ()):
+        info["time_reference" if contact == BASE["contact"] else "time_reference_contact"] = t_set
+        for i, x in (mine.items() if t_ref["pts"] is not None else ()):
             e = errors_mm(x, t_ref["pts"])
             records[i]["time_rms_error_mm"] = float(f"{e['rms_error_mm']:.5g}")
         log(f"[{name}] time reference {setting_label(t_set)}: " + ", ".join(
             f"M={records[i]['settings']['substeps']}: {records[i].get('time_rms_error_mm', float('nan')):.3g} mm"
-            for i in kept))
+            for i in mine))
     # native timing of every setting, interleaved
     t1 = time.perf_counter()
     cases = []
@@ -198,20 +208,21 @@ def run_presets(name: str, raw: dict, args, presets: dict, records: list, ref_pt
     return {"wall_s": round(time.perf_counter() - t0, 1), "load_avg_1min_at_end": round(os.getloadavg()[0], 2)}
 
 
-def convergence_slopes(records: list[dict], infos: list[dict]) -> dict:
-    """Per scene, the substeps sweep (base N, float32): RMS error against the reference and
-    against the same-N float64 time reference, and the least-squares slope of log(error) against
+def convergence_slopes(records: list[dict], infos: list[dict], axis: str = "substeps") -> dict:
+    """Per scene, the substeps sweep (base N, float32; ``axis="substeps_contact"``: with the other
+    contact mode, ``OTHER_CONTACT``): RMS error against the reference and against the same-N float64 time
+    reference (of the same contact mode), and the least-squares slope of log(error) against
     log(M) for the latter over M ≤ M_time / 4. First order (backward Euler) gives −1."""
     out = {}
     for info in infos:
         sc = info["scene"]
-        rs = sorted((r for r in records if r["scene"] == sc and "substeps" in r["axes"] and r.get("rms_error_mm")),
+        rs = sorted((r for r in records if r["scene"] == sc and axis in r["axes"] and r.get("rms_error_mm")),
                     key=lambda r: r["settings"]["substeps"])
         if len(rs) < 2:
             continue
         d = {"substeps": [r["settings"]["substeps"] for r in rs], "rms_error_mm": [r["rms_error_mm"] for r in rs],
              "time_rms_error_mm": [r.get("time_rms_error_mm") for r in rs], "slope": None, "fit_substeps": []}
-        m_time = info.get("time_reference", {}).get("substeps")
+        m_time = info.get("time_reference" if axis == "substeps" else "time_reference_contact", {}).get("substeps")
         fit = [(m, e) for m, e in zip(d["substeps"], d["time_rms_error_mm"]) if e and m_time and m <= m_time / 4]
         if len(fit) >= 2:
             d["slope"] = float(np.polyfit(np.log([f[0] for f in fit]), np.log([f[1] for f in fit]), 1)[0])

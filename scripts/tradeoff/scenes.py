@@ -1,9 +1,10 @@
 """The benchmark scenes, their settings, and one run of a setting compared at material points.
 
 A *setting* is a dict: ``substeps`` M, ``particles`` N, ``dtype`` ("float32" | "float64"),
-``grid`` (hair–hair resolution, None without hair–hair), ``gs`` (``Params.geometric_stiffness``)
-``off`` (stages switched off, see ``STAGES``) and optionally ``params`` (other Params fields,
-e.g. the references' ``stiffness_cap``).
+``grid`` (hair–hair resolution, None without hair–hair), ``gs`` (``Params.geometric_stiffness``),
+``off`` (stages switched off, see ``STAGES``) and optionally ``contact`` (``Params.contact``:
+"frame", the default, or "substep") and ``params`` (other Params fields, e.g. the references'
+``stiffness_cap``).
 
 Every N describes the same hair: each scene's groom is built once as a fine polyline
 (``FINE`` points per strand) and resampled uniformly in arc length to N particles
@@ -28,8 +29,12 @@ from ams_torch.testing import at_material_points, shape_deviation
 
 REPO = Path(__file__).resolve().parents[2]
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
-#: the library default: Params() (M = 1, per-length material), 32 particles, float32, 64³ grid
-BASE = {"substeps": 1, "particles": 32, "dtype": "float32", "grid": 64, "gs": False, "off": []}
+#: the library default: Params() (M = 1, per-length material, geometric stiffness on), 32 particles,
+#: float32, 64³ grid
+BASE = {"substeps": 1, "particles": 32, "dtype": "float32", "grid": 64, "gs": bool(at.Params().geometric_stiffness),
+        "off": [], "contact": at.Params().contact}
+#: the contact mode that is not the library's default (its own substeps sweep)
+OTHER_CONTACT = "frame" if BASE["contact"] == "substep" else "substep"
 FINE = {"wisp": 1025, "head": 257, "roller_coaster": 257}  # points of the fine polylines
 POINTS = 33  # material points per strand at which runs are compared
 #: What switching a stage off means: ``biphasic`` drops the AMS couplings (plain MS: ω_I² = A = 0,
@@ -95,16 +100,20 @@ def base_setting(raw: dict, **changes) -> dict:
 
 def setting_key(s: dict) -> tuple:
     return (s["substeps"], s["particles"], s["dtype"], s.get("grid"), bool(s.get("gs")),
-            tuple(sorted(s.get("off", ()))), tuple(sorted(s.get("params", {}).items())))
+            tuple(sorted(s.get("off", ()))), tuple(sorted(s.get("params", {}).items())), s.get("contact", BASE["contact"]))
 
 
 def setting_label(s: dict) -> str:
-    """Short text of a setting: ``M=4 N=32 float32 grid=64 GS -collisions``."""
+    """Short text of a setting: ``M=4 N=32 float32 grid=64 SPEC -collisions FC`` (``SPEC``: geometric
+    stiffness off, the SPEC form; ``FC`` / ``SC``: contact once per frame / at the substep rate,
+    when it is not the library's default)."""
     out = f"M={s['substeps']} N={s['particles']} {s['dtype']}"
     if s.get("grid"):
         out += f" grid={s['grid']}"
-    if s.get("gs"):
-        out += " GS"
+    if not s.get("gs"):
+        out += " SPEC"
+    if s.get("contact", BASE["contact"]) != BASE["contact"]:
+        out += " SC" if s["contact"] == "substep" else " FC"
     for st in s.get("off", ()):
         out += f" -{st}"
     for k, v in sorted(s.get("params", {}).items()):
@@ -133,8 +142,8 @@ def _edited(raw: dict, setting: dict, strands: int | None = None) -> dict:
         params["check_every"] = 0
     if "biphasic" in off:
         params.update(integrity_rate=0.0, angular_rigidity=0.0, sag_free=False)
-    if setting.get("gs"):
-        params["geometric_stiffness"] = True
+    params["geometric_stiffness"] = bool(setting.get("gs"))
+    params["contact"] = setting.get("contact", BASE["contact"])
     params.update(setting.get("params", {}))
     if strands is not None:
         r["groom"]["strands"] = strands

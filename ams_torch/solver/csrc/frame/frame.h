@@ -18,6 +18,9 @@
 //     the banded Cholesky solve (banded_cholesky.h::solve_strand) for the new velocities;
 //     x = pin targets (R_b X̄ + t_b) on pinned particles, x + Δt' v elsewhere;
 //   then follow-the-leader (ftl.h) with the end pose's rotation, when inextensibility is on.
+//   With substep contact (Params(contact="substep"); dynamics.frame_dynamics' `contact`, the torch
+//   definition sim/contact.py::substep_contact), after each substep's position update every
+//   collider's response with Δt' at its world pose for that substep (collide.h::collide_strand).
 //
 // Data layout: every array of one strand is a Lanes<V, T> view (element e at base + e·stride):
 // rows of 3 for positions, one value per particle / pair for coefficients, the matrix in the row
@@ -29,6 +32,7 @@
 #include <stdint.h>
 
 #include "banded_cholesky.h"
+#include "collide.h"
 #include "ftl.h"
 #include "lanes.h"
 
@@ -565,11 +569,38 @@ AMS_HD void advance(const Strand<V, T>& s, const Material<T>& mat, const FrameSe
   }
 }
 
+// The colliders of substep contact, as given to the kernel: each collider's world pose arrays
+// hold one pose per substep, (M, P, ...) with P = 1 or the number of scenes (the world pose at
+// the end of substep k first); geometry and the rest as collide::ColliderArgs.
+template <class T>
+struct ContactArgs {
+  int count; // 0: no substep contact
+  collide::ColliderArgs<T> colliders[collide::kMaxColliders];
+};
+
+// Collider c of substep k: its arguments with the pose pointers moved to that substep's poses.
+template <class T>
+AMS_HD collide::ColliderArgs<T> contact_collider(const ContactArgs<T>& a, int c, int k) {
+  collide::ColliderArgs<T> out = a.colliders[c];
+  const int64_t p = out.pose_scenes;
+  out.rotation += 9 * p * k;
+  out.translation += 3 * p * k;
+  out.linear_velocity += 3 * p * k;
+  out.angular_velocity += 3 * p * k;
+  return out;
+}
+
 // The whole frame of one strand: M substeps, then follow-the-leader. `poses`: this scene's
-// M + 1 substep poses (kPoseElems each, from substep_pose).
+// M + 1 substep poses (kPoseElems each, from substep_pose). `contact`: substep contact, this
+// scene's prepared colliders substep-major (contact[k · contact_count + c]), or none.
 template <class V, class T>
-AMS_HD void strand_frame(const Strand<V, T>& s, const Material<T>& mat, const FrameSettings& cfg, const T* poses) {
-  for (int k = 0; k < cfg.substeps; ++k) advance(s, mat, cfg, poses + kPoseElems * k, poses + kPoseElems * (k + 1));
+AMS_HD void strand_frame(const Strand<V, T>& s, const Material<T>& mat, const FrameSettings& cfg, const T* poses,
+                         const collide::Prepared<T>* contact = nullptr, int contact_count = 0) {
+  const T h = T(cfg.dt / cfg.substeps);
+  for (int k = 0; k < cfg.substeps; ++k) {
+    advance(s, mat, cfg, poses + kPoseElems * k, poses + kPoseElems * (k + 1));
+    if (contact_count > 0) collide::collide_strand(s.x, s.v, s.n, s.pinned, contact + k * contact_count, contact_count, h);
+  }
   if (cfg.inextensibility)
     follow_the_leader(s.x, s.v, s.rest, s.rest_length[0], s.pinned, poses + kPoseElems * cfg.substeps,
                       T(cfg.ftl_damping), T(cfg.dt), s.n);

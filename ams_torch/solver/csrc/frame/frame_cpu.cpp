@@ -28,6 +28,7 @@
 #include <vector>
 
 #include "banded_simd.h"
+#include "contact_binding.h"
 #include "frame.h"
 #include "frame_binding.h"
 #include "interleave.h"
@@ -78,7 +79,7 @@ using banded::interleave;
 
 template <class T>
 void run_frame(const FrameArgs<T>& args, const FrameSettings& cfg, int64_t assemble_substep, T* out0, T* out1,
-               const FinishArgs<T>* fin = nullptr) {
+               const FinishArgs<T>* fin = nullptr, const ContactArgs<T>* contact = nullptr) {
   using V = typename banded::LaneVec<T>::type;
   constexpr int64_t W = int64_t(sizeof(V) / sizeof(T));
   const int64_t B = args.scenes, S = args.strands, N = args.particles, M = cfg.substeps;
@@ -93,6 +94,13 @@ void run_frame(const FrameArgs<T>& args, const FrameSettings& cfg, int64_t assem
   const int64_t groups = (S + W - 1) / W;
   const bool nonhookean = cfg.integrity == kIntegrityNonHookean;
   const bool has_ext = args.external_force != nullptr;
+  // substep contact: every scene's colliders prepared for every substep, [scene][substep][collider]
+  const int64_t C = contact != nullptr ? contact->count : 0;
+  std::vector<collide::Prepared<T>> prepared(size_t(std::max<int64_t>(1, B * M * C)));
+  for (int64_t b = 0; b < B; ++b)
+    for (int64_t k = 0; k < M; ++k)
+      for (int64_t c = 0; c < C; ++c)
+        collide::prepare_collider(contact_collider(*contact, int(c), int(k)), b, prepared[(b * M + k) * C + c]);
 
   at::parallel_for(0, B * groups, 1, [&](int64_t t_begin, int64_t t_end) {
     T* sc = static_cast<T*>(ams_torch::thread_scratch(size_t(lay.total * W) * sizeof(T), "frame"));
@@ -170,7 +178,7 @@ void run_frame(const FrameArgs<T>& args, const FrameSettings& cfg, int64_t assem
         for (int64_t l = 0; l < lanes; ++l) dst[l] = out1 + (b * S + s0 + l) * 3 * N;
         deinterleave<T, W>(dst, sc + lay.b * W, 3 * N, lanes);
       } else {
-        strand_frame(st, mat, cfg, scene_poses);
+        strand_frame(st, mat, cfg, scene_poses, C > 0 ? prepared.data() + b * M * C : nullptr, int(C));
         for (int64_t l = 0; l < lanes; ++l) dst[l] = out0 + (b * S + s0 + l) * 3 * N;
         deinterleave<T, W>(dst, sc + lay.x * W, 3 * N, lanes);
         for (int64_t l = 0; l < lanes; ++l) dst[l] = out1 + (b * S + s0 + l) * 3 * N;
@@ -214,6 +222,29 @@ std::tuple<at::Tensor, at::Tensor> frame_cpu(at::TensorList state, const std::op
   return {std::get<0>(out), std::get<1>(out)};
 }
 
+std::tuple<at::Tensor, at::Tensor> frame_contact_cpu(
+    at::TensorList state, const std::optional<at::Tensor>& ext, at::TensorList model, at::TensorList poses, double dt,
+    int64_t substeps, double ftl_damping, int64_t integrity_model, bool angular, bool angular_reaction,
+    bool implicit_angular, bool geometric_stiffness, bool inextensibility, bool hermite, at::TensorList tensors,
+    at::TensorList collider_poses, c10::IntArrayRef ints, c10::ArrayRef<double> floats) {
+  constexpr const char* op = "ams_torch_frame_cpu::frame_contact";
+  const FrameInputs in = check_frame_inputs(op, state, ext, model, poses, dt, substeps, ftl_damping, integrity_model,
+                                            angular, angular_reaction, implicit_angular, geometric_stiffness,
+                                            inextensibility, hermite, -1);
+  TORCH_CHECK(in.state[kX].device().is_cpu(), op, ": CPU tensors expected");
+  const ContactInputs cin = check_contact_inputs(op, in, tensors, collider_poses, ints, floats);
+  at::Tensor out0, out1;
+  std::tie(out0, out1) = frame_outputs(in);
+  if (in.scenes > 0 && in.strands > 0) {
+    AT_DISPATCH_FLOATING_TYPES(in.state[kX].scalar_type(), op, [&] {
+      const ContactArgs<scalar_t> ca = contact_args<scalar_t>(cin);
+      run_frame<scalar_t>(frame_args<scalar_t>(in), in.settings, -1, out0.mutable_data_ptr<scalar_t>(),
+                          out1.mutable_data_ptr<scalar_t>(), nullptr, &ca);
+    });
+  }
+  return {out0, out1};
+}
+
 std::tuple<at::Tensor, at::Tensor, at::Tensor> frame_finish_cpu(
     at::TensorList state, const std::optional<at::Tensor>& ext, at::TensorList model, at::TensorList poses, double dt,
     int64_t substeps, double ftl_damping, int64_t integrity_model, bool angular, bool angular_reaction,
@@ -251,9 +282,11 @@ TORCH_LIBRARY(ams_torch_frame_cpu, m) {
   m.def(ams_torch::frame::kFrameSchema);
   m.def(ams_torch::frame::kFrameFinishSchema);
   m.def(ams_torch::frame::kFinishSchema);
+  m.def(ams_torch::frame::kFrameContactSchema);
 }
 
 TORCH_LIBRARY_IMPL(ams_torch_frame_cpu, CPU, m) {
+  m.impl("frame_contact", &ams_torch::frame::frame_contact_cpu);
   m.impl("frame", &ams_torch::frame::frame_cpu);
   m.impl("frame_finish", &ams_torch::frame::frame_finish_cpu);
   m.impl("finish", &ams_torch::frame::finish_cpu);

@@ -104,9 +104,23 @@ __global__ void pose_kernel(const FrameArgs<T> args, int substeps, bool hermite,
   substep_pose(args, i / (substeps + 1), int(i % (substeps + 1)), substeps, hermite, dt, out + i * kPoseElems);
 }
 
+// Substep contact: collider c of scene b at substep k, prepared once per call into
+// table[(b · M + k) · C + c] (read by every thread of the scene).
+template <class T>
+__global__ void contact_prepare_kernel(const ContactArgs<T> contact, int64_t scenes, int substeps,
+                                       collide::Prepared<T>* table) {
+  const int64_t C = contact.count;
+  const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i >= scenes * substeps * C) return;
+  const int64_t c = i % C, k = (i / C) % substeps, b = i / (C * substeps);
+  collide::prepare_collider(contact_collider(contact, int(c), int(k)), b, table[i]);
+}
+
 template <class T>
 __global__ void __launch_bounds__(kFrameThreads) frame_kernel(const FrameArgs<T> args, const FrameSettings cfg,
-                                                                const Workspace<T> ws, int64_t assemble_substep) {
+                                                                const Workspace<T> ws, int64_t assemble_substep,
+                                                                const collide::Prepared<T>* contact,
+                                                                int contact_count) {
   const int64_t S = args.strands, N = args.particles, G = args.scenes * S;
   const int64_t g = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (g >= G) return;
@@ -148,7 +162,8 @@ __global__ void __launch_bounds__(kFrameThreads) frame_kernel(const FrameArgs<T>
     assemble(st, mat, cfg, pa, pa + kPoseElems);
     mirror_blocks(st.a, N);
   } else {
-    strand_frame(st, mat, cfg, poses);
+    strand_frame(st, mat, cfg, poses, contact != nullptr ? contact + b * cfg.substeps * contact_count : nullptr,
+                 contact_count);
   }
 }
 
@@ -178,9 +193,13 @@ int64_t frame_cuda_workspace_elems(int64_t scenes, int64_t strands, int64_t part
   return Offsets(scenes, strands, particles, substeps).total;
 }
 
+namespace {
+
+// The launches of frame_cuda (contact: the prepared colliders of substep contact, or none).
 template <class T>
-cudaError_t frame_cuda(const FrameArgs<T>& args, const FrameSettings& cfg, int64_t assemble_substep, T* out0, T* out1,
-                       T* workspace, cudaStream_t stream) {
+cudaError_t launch_frame(const FrameArgs<T>& args, const FrameSettings& cfg, int64_t assemble_substep, T* out0,
+                         T* out1, T* workspace, const collide::Prepared<T>* contact, int contact_count,
+                         cudaStream_t stream) {
   const int64_t B = args.scenes, S = args.strands, N = args.particles, M = cfg.substeps, G = B * S;
   if (G <= 0) return cudaSuccess;
   const Offsets off(B, S, N, M);
@@ -212,7 +231,7 @@ cudaError_t frame_cuda(const FrameArgs<T>& args, const FrameSettings& cfg, int64
   const int threads = cuda::strand_block_threads(G, kFrameThreads);
   const int64_t grid = (G + threads - 1) / threads;
   if (grid > 0x7fffffffLL) return cudaErrorInvalidConfiguration;
-  frame_kernel<T><<<unsigned(grid), threads, 0, stream>>>(args, cfg, ws, assemble_substep);
+  frame_kernel<T><<<unsigned(grid), threads, 0, stream>>>(args, cfg, ws, assemble_substep, contact, contact_count);
 
   TransposeBatch<T> back; // (values, strands) -> (strands, values)
   if (assemble_substep >= 0) {
@@ -225,6 +244,39 @@ cudaError_t frame_cuda(const FrameArgs<T>& args, const FrameSettings& cfg, int64
   launch_transpose(back, stream);
   return cudaGetLastError();
 }
+
+} // namespace
+
+template <class T>
+cudaError_t frame_cuda(const FrameArgs<T>& args, const FrameSettings& cfg, int64_t assemble_substep, T* out0, T* out1,
+                       T* workspace, cudaStream_t stream) {
+  return launch_frame(args, cfg, assemble_substep, out0, out1, workspace, (const collide::Prepared<T>*)nullptr, 0,
+                      stream);
+}
+
+int64_t frame_contact_table_bytes(int64_t scenes, int64_t substeps, int64_t colliders, int64_t elem_bytes) {
+  const int64_t prepared = elem_bytes == 4 ? int64_t(sizeof(collide::Prepared<float>))
+                                           : int64_t(sizeof(collide::Prepared<double>));
+  return scenes * substeps * colliders * prepared;
+}
+
+template <class T>
+cudaError_t frame_contact_cuda(const FrameArgs<T>& args, const ContactArgs<T>& contact, const FrameSettings& cfg,
+                               T* out0, T* out1, T* workspace, void* table, cudaStream_t stream) {
+  const int64_t count = args.scenes * cfg.substeps * contact.count;
+  if (args.scenes * args.strands <= 0) return cudaSuccess;
+  auto* prepared = static_cast<collide::Prepared<T>*>(table);
+  if (count > 0) {
+    contact_prepare_kernel<T><<<unsigned((count + kPoseThreads - 1) / kPoseThreads), kPoseThreads, 0, stream>>>(
+        contact, args.scenes, cfg.substeps, prepared);
+  }
+  return launch_frame(args, cfg, -1, out0, out1, workspace, count > 0 ? prepared : nullptr, contact.count, stream);
+}
+
+template cudaError_t frame_contact_cuda<float>(const FrameArgs<float>&, const ContactArgs<float>&,
+                                               const FrameSettings&, float*, float*, float*, void*, cudaStream_t);
+template cudaError_t frame_contact_cuda<double>(const FrameArgs<double>&, const ContactArgs<double>&,
+                                                const FrameSettings&, double*, double*, double*, void*, cudaStream_t);
 
 template cudaError_t frame_cuda<float>(const FrameArgs<float>&, const FrameSettings&, int64_t, float*, float*, float*,
                                        cudaStream_t);

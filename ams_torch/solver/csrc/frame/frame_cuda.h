@@ -37,6 +37,24 @@ extern template cudaError_t frame_cuda<float>(const FrameArgs<float>&, const Fra
 extern template cudaError_t frame_cuda<double>(const FrameArgs<double>&, const FrameSettings&, int64_t, double*,
                                                double*, double*, cudaStream_t);
 
+// Bytes of the table of prepared colliders `frame_contact_cuda` needs (collide::Prepared<T>, one
+// per scene, substep and collider; elem_bytes = sizeof(T)).
+int64_t frame_contact_table_bytes(int64_t scenes, int64_t substeps, int64_t colliders, int64_t elem_bytes);
+
+// One frame with substep contact (out0 = x', out1 = v'): the colliders of every scene and substep
+// prepared into `table` (device memory of frame_contact_table_bytes, 16-byte aligned), then the
+// launches of frame_cuda with the contact response after every substep (frame.h).
+template <class T>
+cudaError_t frame_contact_cuda(const FrameArgs<T>& args, const ContactArgs<T>& contact, const FrameSettings& cfg,
+                               T* out0, T* out1, T* workspace, void* table, cudaStream_t stream);
+
+extern template cudaError_t frame_contact_cuda<float>(const FrameArgs<float>&, const ContactArgs<float>&,
+                                                      const FrameSettings&, float*, float*, float*, void*,
+                                                      cudaStream_t);
+extern template cudaError_t frame_contact_cuda<double>(const FrameArgs<double>&, const ContactArgs<double>&,
+                                                       const FrameSettings&, double*, double*, double*, void*,
+                                                       cudaStream_t);
+
 // The frame's end (finish.h): one thread per particle, asynchronously on `stream`. Returns
 // cudaGetLastError() after the launch.
 template <class T>
