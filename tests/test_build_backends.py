@@ -284,3 +284,23 @@ def test_nvcc_arches_parses_the_toolkit():
     found = nvcc_arches(nvcc)
     assert found and "9.0" in found and "8.0" in found
     assert nvcc_arches("/nonexistent/nvcc") is None
+
+
+def test_cache_key_covers_every_header_a_build_reads(tmp_path, monkeypatch):
+    """Touching a header included only indirectly (frame.h -> collide.h) changes the cache tag of
+    every backend that reads it, and of no other."""
+    import shutil
+
+    from ams_torch.solver import build
+
+    copy = tmp_path / "csrc"
+    shutil.copytree(build.CSRC_ROOT, copy)
+    monkeypatch.setattr(build, "CSRC_ROOT", copy)
+    key = {"probe": 1}
+    before = {k: build.build_tag(k, key) for k in build._BACKENDS}
+    readers = {k for k, spec in build._BACKENDS.items() if "collide/collide.h" in build.include_closure(spec[1])}
+    assert {"frame_cpu", "frame_adjoint_cpu", "collide_cpu"} <= readers  # frame.h includes collide.h
+    with open(copy / "collide" / "collide.h", "a") as fh:
+        fh.write("\n// touched\n")
+    after = {k: build.build_tag(k, key) for k in build._BACKENDS}
+    assert {k for k in before if before[k] != after[k]} == readers

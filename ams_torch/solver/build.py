@@ -45,6 +45,7 @@ import hashlib
 import json
 import os
 import platform
+import re
 import shutil
 import subprocess
 import sys
@@ -167,6 +168,36 @@ _SELFTEST = {
         "cuda",
     ),
 }
+_INCLUDE = re.compile(r'^\s*#\s*include\s*"([^"]+)"', re.M)
+
+
+def include_closure(files) -> tuple:
+    """Every csrc/ header that ``files`` (paths relative to csrc/) include, directly or through
+    other headers (``#include "name"`` resolved against csrc/ and its folders, the emulator's
+    excepted), sorted: what a build of those files reads, so the cache key covers it."""
+    folders = [CSRC_ROOT] + [d for d in sorted(CSRC_ROOT.iterdir()) if d.is_dir() and d.name != "emulation"]
+    seen, todo = set(), list(files)
+    while todo:
+        rel = todo.pop()
+        for inc in _INCLUDE.findall((CSRC_ROOT / rel).read_text()):
+            hits = [d / inc for d in folders if (d / inc).is_file()]
+            if not hits:
+                continue  # not ours (a system or torch header given with quotes)
+            dep = str(hits[0].relative_to(CSRC_ROOT))
+            if dep not in seen:
+                seen.add(dep)
+                todo.append(dep)
+    return tuple(sorted(seen - set(files)))
+
+
+def _complete(table: dict) -> dict:
+    """The table with each backend's headers made the include closure of its sources (plus any
+    listed): a header added to a kernel can never be left out of its cache key."""
+    return {k: (n, src, tuple(sorted(set(hdr) | set(include_closure(src)))), ns, dev)
+            for k, (n, src, hdr, ns, dev) in table.items()}
+
+
+_BACKENDS, _SELFTEST = _complete(_BACKENDS), _complete(_SELFTEST)
 _ALL = {**_BACKENDS, **_SELFTEST, **emulation.emulated_specs({**_BACKENDS, **_SELFTEST})}
 
 #: How each stage of a frame whose inputs require grad runs on a native simulator (forward and
@@ -358,6 +389,23 @@ def _static_reason(kind: str) -> Optional[str]:
     return None
 
 
+def build_tag(kind: str, key_parts: dict) -> str:
+    """The cache folder name of backend ``kind``: a hash of the build configuration ``key_parts``
+    and of every file the build reads (its sources, the include closure of their csrc/ headers,
+    the emulator's files for an emulated build), read now: any edit rebuilds."""
+    name, sources, headers, namespace, device = _ALL[kind]
+    digest = hashlib.sha256()
+    digest.update(json.dumps(key_parts, sort_keys=True).encode())
+    files = sorted(set(sources) | set(headers) | set(include_closure(sources)))
+    inputs = [CSRC_ROOT / f for f in files]
+    if device == emulation.DEVICE:
+        inputs += emulation.shim_files()
+    for path in inputs:
+        digest.update(str(path.relative_to(CSRC_ROOT)).encode())
+        digest.update(path.read_bytes())
+    return f"{kind}-torch{torch.__version__}-cuda{torch.version.cuda or 'none'}-{digest.hexdigest()[:16]}"
+
+
 def _build_and_load(kind: str, st: dict) -> Callable:
     reason = _static_reason(kind)
     if reason:
@@ -365,15 +413,7 @@ def _build_and_load(kind: str, st: dict) -> Callable:
     name, sources, headers, namespace, device = _ALL[kind]
     cflags, cuda_flags, ldflags, key_parts = _build_config(device)
     st["notes"] = list(key_parts.pop("notes", []))
-    digest = hashlib.sha256()
-    digest.update(json.dumps(key_parts, sort_keys=True).encode())
-    inputs = [CSRC_ROOT / f for f in sources + headers]
-    if device == emulation.DEVICE:
-        inputs += emulation.shim_files()
-    for path in inputs:
-        digest.update(str(path.relative_to(CSRC_ROOT)).encode())
-        digest.update(path.read_bytes())
-    tag = f"{kind}-torch{torch.__version__}-cuda{torch.version.cuda or 'none'}-{digest.hexdigest()[:16]}"
+    tag = build_tag(kind, key_parts)
     build_dir = cache_root() / tag.replace("+", "_")
     st["build_dir"] = str(build_dir)
     st["flags"] = cflags + cuda_flags + ([f"TORCH_CUDA_ARCH_LIST={key_parts['arch']}"] if "arch" in key_parts else [])
