@@ -1,14 +1,20 @@
-"""Guide-strand interpolation baselines (SPEC §11).
+"""Guide-to-dense interpolation: the benchmark and its baselines (SPEC §11).
 
-- :func:`select_guides`: choose guide strands (farthest-point sampling or k-means on roots).
-- :class:`LinearHairSkinning`: dense strands from their K nearest guides with parallel-transported
-  frames.
-- :mod:`baselines.upsampler`: a small neural residual on top of skinning.
-- :mod:`baselines.metrics`: fidelity against the dense simulation (errors in mm).
-- :mod:`baselines.data`: a small simulated HDF5 dataset (generator + reader).
+- :class:`Interpolator` (:mod:`baselines.protocol`): what a method implements (``fit``,
+  ``predict``, optional causal ``reset``/``step``) and the samples it is given;
+  :func:`resolve_method` finds one by built-in name, ``package.module:factory`` or entry point.
+- :mod:`baselines.methods`: the built-ins that learn nothing (``rigid``, ``nearest``,
+  ``skinning``, ``skinning+pushout``); :mod:`baselines.learned`: the learned ones (``upsampler``,
+  ``temporal``, ``collision``, ``agnostic``).
+- :mod:`baselines.metrics`: fidelity against the dense simulation, each with a known-answer test.
+- :mod:`baselines.bench`: ``ams-torch bench-interp`` (datasets or suites → results.json,
+  leaderboard.md, plots); :mod:`baselines.cost`: ms/frame against dense simulation.
+- :func:`select_guides`, :class:`LinearHairSkinning`: guide selection and linear hair skinning.
 """
 from .guides import fps_order, select_guides
 from .skinning import LinearHairSkinning
+from .protocol import Interpolator, MethodError, resolve_method
 from . import metrics
 
-__all__ = ["select_guides", "fps_order", "LinearHairSkinning", "metrics"]
+__all__ = ["Interpolator", "MethodError", "resolve_method", "select_guides", "fps_order", "LinearHairSkinning",
+           "metrics"]
