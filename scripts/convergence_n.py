@@ -22,8 +22,8 @@ Two studies, both float64:
     .venv/bin/python scripts/convergence_n.py            # → docs/material_convergence.{md,json,png}
     .venv/bin/python scripts/convergence_n.py --quick    # 3 strands, 30 frames
 
-Strands are independent without hair–hair, so a subset of a groom's strands is exact; the
-convergence study does not depend on how a preset's strands share their phase (clumps).
+Strands are independent without hair–hair, so a few strands of a groom are exact; they are the
+preset's own (wavy and curly grow in clumps by default, so the strands drawn depend on it).
 """
 from __future__ import annotations
 
@@ -156,7 +156,7 @@ def uncoupled_rigidities(rest: torch.Tensor, stretch: float, bend: float, torsio
     """Per-spring rigidities (B_b (1, N−2), B_t (1, N−3)) that make the per-length springs
     κ = B / ℓ⁵ exactly, i.e. undo the stretch-coupling factor s (the conversion before it): the
     fixed point of B' = B / s(B'), by iteration."""
-    from ams_torch.sim.model import stretch_coupling_factor
+    from ams_torch.sim.material import stretch_coupling_factor
 
     ell_b = (rest[:, 2:] - rest[:, :-2]).norm(dim=-1) / 2
     ell_t = (rest[:, 3:] - rest[:, :-3]).norm(dim=-1) / 3

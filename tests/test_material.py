@@ -8,7 +8,8 @@ import pytest
 import torch
 
 import ams_torch as at
-from ams_torch.sim.model import coefficients, coupled_bending, stretch_coupling_factor
+from ams_torch.sim.material import coupled_bending, stretch_coupling_factor
+from ams_torch.sim.model import coefficients
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 import convergence_n  # noqa: E402
@@ -114,10 +115,10 @@ def test_root_length_pins_a_fixed_arc_length():
 
 @pytest.mark.parametrize("name", ["wavy", "curly"])
 def test_error_falls_at_first_order_in_n_against_a_finer_reference(name, capsys):
-    """A small version of scripts/convergence_n.py: 3 strands of a preset, 30 frames of a shake, M = 4;
+    """A small version of scripts/convergence_n.py: 3 strands of a preset, 40 frames of a shake, M = 4;
     N = 16 and 32 against N = 128 (four times finer than the finest N judged), whose own error
     against N = 256 is at most 1/5 of the errors judged (the full study: docs/material_convergence.md)."""
-    case = convergence_n.preset_case(name, 3, 30)
+    case = convergence_n.preset_case(name, 3, 40)
     r = convergence_n.convergence(case, "per_length", substeps=4, ns=(16, 32), ref_n=128, check_n=256, shown=(),
                                   time_check=False)
     with capsys.disabled():

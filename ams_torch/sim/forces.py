@@ -90,12 +90,21 @@ def spring_forces(x: torch.Tensor, rest_length: torch.Tensor, stiffness, k: int,
     return force, block
 
 
+#: relative stretch below which a spring has no geometric stiffness: follow-the-leader leaves edges at
+#: their rest length up to rounding, where ``(1 − l/|d|)₊`` has its kink; without this slack the matrix
+#: (and the gradient) would flip with the rounding of each edge (as the non-Hookean tangent would, SPEC §7)
+GEOMETRIC_SLACK = 1.000001
+
+
 def geometric_stiffness_factor(length: torch.Tensor, rest_length: torch.Tensor) -> torch.Tensor:
-    """``(1 − l/|d|)₊``, dimensionless, (..., S, N−k): the positive part of the geometric stiffness
-    of a stretched spring relative to κ (SPEC §4); 0 for a compressed or collapsed spring.
-    length |d| and rest_length l in metres."""
+    """``(1 − l'/|d|)₊`` with ``l' = l (1 + 1e-6)`` (:data:`GEOMETRIC_SLACK`), dimensionless,
+    (..., S, N−k): the positive part of the geometric stiffness of a stretched spring relative to
+    κ (SPEC §4); 0 for a spring compressed, collapsed, or within 1e-6 of its rest length (where
+    follow-the-leader leaves it, so rounding cannot switch the term on and off). length |d| and
+    rest_length l in metres."""
+    slack = rest_length * GEOMETRIC_SLACK
     safe = torch.where(length > 0, length, torch.ones_like(length))
-    return torch.where(length > rest_length, 1.0 - rest_length / safe, torch.zeros_like(length))
+    return torch.where(length > slack, 1.0 - slack / safe, torch.zeros_like(length))
 
 
 def integrity_force(x: torch.Tensor, ghost: torch.Tensor, stiffness) -> torch.Tensor:

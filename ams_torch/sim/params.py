@@ -110,7 +110,7 @@ class Params:
         stretch_rigidity: EA, N: κ_L,i = EA / l_i for edge i.
         bend_rigidity, torsion_rigidity: N·m⁴, rigidity proxies B_b, B_t of the springs
             (i, i+2) and (i, i+3): κ_i = s B / ℓ_i⁵ with ℓ_i the spring's rest length over its span
-            (2 or 3 edges) and s the stretch-coupling factor (``sim.model.stretch_coupling_factor``),
+            (2 or 3 edges) and s the stretch-coupling factor (``sim.material.stretch_coupling_factor``),
             which makes the small-deflection bending stiffness per unit length of a curved rest
             shape of curvature c, c² (B_b/4 + 4 B_t), independent of N (docs/material.md; tested
             against an Euler–Bernoulli cantilever). Default 0: under large deformation the springs'
@@ -316,12 +316,12 @@ class Params:
     def to_per_length(self, segment_length: float) -> "Params":
         """The per-length material that equals this per-particle one on a strand of segments of
         ``segment_length`` metres (docs/material.md): λ = m/l, EA = κ_L l, B = κ_L × scale × l⁵ / s
-        (s the stretch-coupling factor of the per-length springs, :func:`~ams_torch.sim.model.
+        (s the stretch-coupling factor of the per-length springs, :func:`~ams_torch.sim.material.
         stretch_coupling_factor`, here from the springs' coupled bending stiffness), ω_I² = κ_I/m,
         A = κ_α, root length (num_pinned − 1) l, integrity length l.
         Interior particles match exactly; the two end particles carry half a segment's mass in
         the per-length material. Tensor fields are converted elementwise."""
-        from ams_torch.sim.model import coupled_bending
+        from ams_torch.sim.material import coupled_bending
 
         if self.material != "per_particle":
             raise ValueError("to_per_length converts a per_particle Params")
@@ -343,7 +343,7 @@ class Params:
         """The per-particle material that equals this per-length one on segments of
         ``segment_length`` metres (the inverse of :meth:`to_per_length`; the pinned count is the
         particles within ``root_length``, at least 2; the stiffness cap is not applied)."""
-        from ams_torch.sim.model import stretch_coupling_factor
+        from ams_torch.sim.material import stretch_coupling_factor
 
         if self.material != "per_length":
             raise ValueError("to_per_particle converts a per_length Params")

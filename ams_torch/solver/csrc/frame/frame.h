@@ -40,6 +40,9 @@ namespace ams_torch {
 namespace frame {
 
 constexpr int kPoseElems = 12; // row-major R (9), then t (3)
+// l' / l of the geometric stiffness (1 − l'/L)₊: edges follow-the-leader left at their rest length
+// (up to rounding) get no term (sim/forces.py GEOMETRIC_SLACK)
+constexpr double kGeometricSlack = 1.000001;
 constexpr int kRow = banded::kRowElems;
 
 enum IntegrityModel { kIntegrityNone = 0, kIntegrityHookean = 1, kIntegrityNonHookean = 2 };
@@ -311,9 +314,10 @@ AMS_HD void add_springs(const Strand<V, T>& s, T h2, bool geometric) {
       V fp[3], dd[6], hk[6];
       for (int q = 0; q < 3; ++q) fp[q] = mag * u[q];
       outer6(u, dd);
-      if (geometric) {
+      if (geometric) { // (1 − l'/L)₊, l' = l (1 + 1e-6): no term within rounding of the rest length
         const V safe = select(len > T(0), len, one);
-        const V g = select(len > l0, T(1) - l0 / safe, zero);
+        const V slack = l0 * T(kGeometricSlack);
+        const V g = select(len > slack, T(1) - slack / safe, zero);
         for (int e = 0; e < 6; ++e) dd[e] = dd[e] + g * (diag6(e) ? T(1) - dd[e] : -dd[e]);
       }
       for (int e = 0; e < 6; ++e) hk[e] = h2 * (kp * dd[e]);

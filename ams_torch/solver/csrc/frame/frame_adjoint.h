@@ -210,11 +210,12 @@ AMS_HD void springs_adjoint(const Strand<V, T>& s, const Adjoint<V, T>& adj, con
     const V kp = s.stiffness[K - 1][i], l0 = s.rest_length[K - 1][i];
     const V alpha = dot3(dl, u), beta = dot3(dv, u), dd = dot3(dl, dv);
     V g = zero, gp = zero; // geometric stiffness factor (1 − l/L)₊ and its derivative in L
-    if (geometric) {
+    if (geometric) { // the forward's (1 − l'/L)₊, l' = l (1 + 1e-6)
       const V safe = select(L > T(0), L, one);
-      const auto stretched = L > l0;
-      g = select(stretched, one - l0 / safe, zero);
-      gp = select(stretched, l0 / (safe * safe), zero);
+      const V slack = l0 * T(kGeometricSlack);
+      const auto stretched = L > slack;
+      g = select(stretched, one - slack / safe, zero);
+      gp = select(stretched, slack / (safe * safe), zero);
     }
     const V keep = one - g;
     // σ = Δt' κ (L − l) α − Δt'² κ [(1 − g) α β + g Δλ·Δv']
