@@ -30,7 +30,8 @@ from ams_torch.sim.state import Config, Control, State
 from ams_torch.stages.collide import resolve_world_poses
 from ams_torch.stages.hair_hair import hair_hair_stage
 
-__all__ = ["step", "resolve_pose", "collisions", "plastic_update", "check_state", "SimulationDiverged"]
+__all__ = ["step", "resolve_pose", "collisions", "plastic_update", "check_state", "SimulationDiverged",
+           "GridOverflow"]
 
 
 class SimulationDiverged(FloatingPointError):
@@ -42,6 +43,16 @@ class SimulationDiverged(FloatingPointError):
         self.frame = frame
         self.strands = strands
         self.bad_input = bad_input
+
+
+class GridOverflow(SimulationDiverged):
+    """The hair occupied more blocks than the hair–hair grid holds (a static capacity,
+    ``HairHair.max_blocks``): from ``.frame`` on, the blocks beyond it were left out of the
+    hair–hair stage. ``.capacity`` is the grid's capacity in blocks of 4³ cells."""
+
+    def __init__(self, message: str, frame: int, capacity: int):
+        super().__init__(message, frame=frame, strands=[])
+        self.capacity = capacity
 
 
 def resolve_pose(prev: Pose, pose: Optional[Pose], dt) -> tuple:
@@ -170,10 +181,13 @@ def step(model: Model, state: State, control: Control, config: Config, timer=Non
             x, v = native_frame_dynamics(*args)
         else:  # nothing runs after the dynamics: the frame's end is fused into its kernel
             x, v, speed = native_frame_dynamics(*args, finish=pose1, pinned=model.pinned)
+    overflow_frame = state.overflow_frame
     if config.hair_hair:
         with stage("hair_hair"):
-            x, v = hair_hair_stage(model.hair_hair, x, v, coeffs.mass, pose1, dt, ~model.pinned,
-                                   backend="auto" if native else "torch")
+            x, v, overflow = hair_hair_stage(model.hair_hair, x, v, coeffs.mass, pose1, dt, ~model.pinned,
+                                             backend="auto" if native else "torch", with_overflow=True)
+        before = overflow_frame if overflow_frame is not None else torch.full_like(state.frame, -1)
+        overflow_frame = torch.where((before < 0) & overflow, state.frame + 1, before)
     if config.colliders:
         with stage("collisions"):
             x, v = collisions(model, config, x, v, pose1, control.collider_poses, native)
@@ -182,14 +196,22 @@ def step(model: Model, state: State, control: Control, config: Config, timer=Non
     if config.nonhookean:
         ghost_rest = plastic_update(model, coeffs, x, ghost_rest, state.sag_offset, pose1)
     return State(x=x, v=v, ghost_rest=ghost_rest, sag_offset=state.sag_offset, pose=pose1, time=time + dt,
-                 frame=state.frame + 1, diverged_frame=diverged_frame, diverged_input=diverged_input)
+                 frame=state.frame + 1, diverged_frame=diverged_frame, diverged_input=diverged_input,
+                 overflow_frame=overflow_frame)
 
 
-def check_state(state: State, config: Config) -> None:
+def check_state(state: State, config: Config, grid=None) -> None:
     """Divergence guard, outside the step (one host sync): raise :class:`SimulationDiverged`
     naming the first bad frame and the strands now non-finite or faster than
-    ``config.max_relative_speed`` relative to the head, if the state's flag is set."""
-    frame = int(state.diverged_frame)
+    ``config.max_relative_speed`` relative to the head, if the state's flag is set; or
+    :class:`GridOverflow` if the hair–hair grid overflowed first (``grid``: the model's
+    :class:`~ams_torch.stages.hair_hair.HairHairGrid`, for the message)."""
+    if state.overflow_frame is None:
+        frame, overflow = int(state.diverged_frame), -1
+    else:
+        frame, overflow = torch.stack((state.diverged_frame, state.overflow_frame)).tolist()
+    if overflow >= 0 and (frame < 0 or overflow <= frame):
+        _raise_overflow(overflow, grid)
     if frame < 0:
         return
     x, v = state.x, state.v
@@ -208,3 +230,14 @@ def check_state(state: State, config: Config) -> None:
         advice = "Try more substeps, a smaller dt or lower stiffness."
     raise SimulationDiverged(f"simulation diverged at frame {frame}: {kind}{where}. {advice}", frame=frame,
                              strands=idx, bad_input=bad_input)
+
+
+def _raise_overflow(frame: int, grid) -> None:
+    capacity = getattr(grid, "capacity", -1)
+    held = f"the {capacity} blocks of 4³ cells it holds" if capacity > 0 else "the blocks it holds"
+    whole = f" (the whole grid is {grid.blocks_per_axis ** 3} blocks)" if capacity > 0 else ""
+    raise GridOverflow(f"hair–hair grid overflow at frame {frame}: the hair occupied more than {held}, and from "
+                       f"that frame on the blocks beyond them were left out of the hair–hair stage. Give the grid "
+                       f"more room: HairHair(max_blocks=...){whole}, or a larger block_margin (the automatic "
+                       f"capacity is block_margin × the blocks the rest groom occupies).", frame=frame,
+                       capacity=capacity)

@@ -187,6 +187,11 @@ class HairHairGrid(torch.nn.Module):
         self.register_buffer("target_density", target_density)
 
     @property
+    def blocks_per_axis(self) -> int:
+        """nb = R // 4 + 1: blocks of 4³ cells per axis (the whole grid is nb³ blocks)."""
+        return blocks_per_axis(self.resolution)
+
+    @property
     def extent(self) -> float:
         """Side of the cubic grid, metres."""
         return self.cell_size * self.resolution
