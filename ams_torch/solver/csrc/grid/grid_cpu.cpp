@@ -33,6 +33,7 @@
 #include <vector>
 
 #include "grid.h"
+#include "grid_simd.h"
 
 namespace ams_torch {
 namespace grid {
@@ -61,6 +62,19 @@ int lowest_bit(uint64_t bits) { // bits != 0
   }
   return l;
 #endif
+}
+
+// Bit l: the three lower faces of cell l of `slot` (in the block itself) have mass > eps, which
+// every active cell needs (the cheap part of grid.h's cell_entry test).
+template <class T>
+uint64_t lower_faces_massive(const T* faces, int64_t slot, T eps) {
+  const T* f = faces + slot * 3 * kBlockCells * 2;
+  uint64_t bits = 0;
+  for (int l = 0; l < kBlockCells; ++l) {
+    const bool all = f[2 * l] > eps && f[2 * (kBlockCells + l)] > eps && f[2 * (2 * kBlockCells + l)] > eps;
+    bits |= uint64_t(all) << l;
+  }
+  return bits;
 }
 
 void check_common(const char* op, const at::Tensor& t, const char* name, at::ScalarType dtype) {
@@ -92,6 +106,111 @@ void check_int(const char* op, const at::Tensor& t, const char* name, at::IntArr
               ": ", name, " must be a CPU int32 tensor of shape ", sizes, ", got ", t.scalar_type(), " ", t.sizes());
 }
 
+// Per-particle passes run over batches of kLanes particles of one scene (the SIMD lanes of
+// grid_simd.h, or one particle at a time without them): batch t of scene b covers particles
+// [t kLanes, min((t + 1) kLanes, P)).
+#if AMS_GRID_SIMD
+template <class T>
+constexpr int lanes_of() {
+  return simd::Lanes<T>::W;
+}
+#else
+template <class T>
+constexpr int lanes_of() {
+  return 1;
+}
+#endif
+
+// First pass of P2G over particles [q0, q0 + n) of scene b: head-frame coordinates (head: 6 per
+// particle), x-slab of each particle, and the marks of the blocks its stencils touch.
+template <class T>
+void p2g_mark(const T* x, const T* v, const T* fr, const T* origin, T h, int64_t r, int64_t nb, int64_t q0, int n,
+              T* head, int32_t* slab, uint8_t* mark) {
+#if AMS_GRID_SIMD
+  using V = simd::VecT<T>;
+  using I = simd::IntT<T>;
+  V xs[3], vs[3], xl[3], vl[3];
+  for (int lane = 0; lane < simd::Lanes<T>::W; ++lane) {
+    const int64_t q = q0 + (lane < n ? lane : n - 1);
+    for (int a = 0; a < 3; ++a) {
+      xs[a][lane] = x[3 * q + a];
+      vs[a][lane] = v[3 * q + a];
+    }
+  }
+  simd::to_head<T>(fr, xs, vs, xl, vl);
+  I first[3], last[3], inside;
+  simd::batch_blocks<T>(xl, origin, h, r, first, last, inside);
+  const V cx = simd::Lanes<T>::floor((xl[0] - origin[0]) / h);
+  for (int lane = 0; lane < n; ++lane) {
+    T* hd = head + 6 * (q0 + lane);
+    for (int a = 0; a < 3; ++a) {
+      hd[a] = xl[a][lane];
+      hd[3 + a] = vl[a][lane];
+    }
+    T c = cx[lane];
+#else
+  for (int lane = 0; lane < n; ++lane) {
+    T* hd = head + 6 * (q0 + lane);
+    to_head(fr, x + 3 * (q0 + lane), v + 3 * (q0 + lane), hd, hd + 3);
+    int64_t first_s[3], last_s[3];
+    const bool in = particle_blocks(hd, origin, h, r, first_s, last_s);
+    T c = grid_floor(cell_coord(hd, origin, h, 0));
+#endif
+    if (!(c >= T(0))) c = T(0); // also NaN
+    if (c > T(r - 1)) c = T(r - 1);
+    slab[q0 + lane] = int32_t(int64_t(c) / kSlab);
+#if AMS_GRID_SIMD
+    if (!inside[lane]) continue;
+    const int64_t f0 = first[0][lane], f1 = first[1][lane], f2 = first[2][lane];
+    const int64_t l0 = last[0][lane], l1 = last[1][lane], l2 = last[2][lane];
+#else
+    if (!in) continue;
+    const int64_t f0 = first_s[0], f1 = first_s[1], f2 = first_s[2], l0 = last_s[0], l1 = last_s[1], l2 = last_s[2];
+#endif
+    for (int64_t i = f0; i <= l0; ++i)
+      for (int64_t j = f1; j <= l1; ++j)
+        for (int64_t k = f2; k <= l2; ++k) set_mark(mark + (i * nb + j) * nb + k);
+  }
+}
+
+// Scatter of particles order[i0 .. i0 + n) (indices within scene b) into the scene's pool.
+template <class T>
+void p2g_scatter(const T* head, const T* m, const int32_t* order, int64_t i0, int n, const T* origin, T h, int64_t r,
+                 int64_t nb, const int32_t* table, T* faces) {
+#if AMS_GRID_SIMD
+  using V = simd::VecT<T>;
+  V xl[3];
+  for (int lane = 0; lane < simd::Lanes<T>::W; ++lane) {
+    const T* hd = head + 6 * order[i0 + (lane < n ? lane : n - 1)];
+    for (int a = 0; a < 3; ++a) xl[a][lane] = hd[a];
+  }
+  simd::Batch<T> bt;
+  simd::batch_stencil<T>(xl, origin, h, r, nb, table, n, bt);
+  // a face's (mass, momentum) pair in one 2-lane vector: the two adds of grid.h's p2g_particle
+  typedef T Pair __attribute__((vector_size(2 * sizeof(T)), may_alias));
+  for (int lane = 0; lane < n; ++lane) {
+    const int32_t p = order[i0 + lane];
+    const T* vl = head + 6 * p + 3;
+    const T mp = m[p];
+    for (int c = 0; c < 3; ++c) {
+      const Pair mv = {mp, mp * vl[c]};
+      for (int k = 0; k < 8; ++k) {
+        const int64_t f = bt.face[c][k][lane];
+        if (f < 0) continue;
+        *reinterpret_cast<Pair*>(faces + 2 * f) += bt.w[c][k][lane] * mv;
+      }
+    }
+  }
+#else
+  const auto add = [](T* ptr, T value) { *ptr += value; };
+  for (int lane = 0; lane < n; ++lane) {
+    const int32_t p = order[i0 + lane];
+    const T* hd = head + 6 * p;
+    p2g_particle(hd, hd + 3, m[p], origin, h, r, nb, table, faces, add);
+  }
+#endif
+}
+
 template <class T>
 void p2g_impl(const T* x, const T* v, const T* m, const T* frame, const T* origin, T* faces, int32_t* table,
               int32_t* blocks, int32_t* count, int64_t B, int64_t P, int64_t r, int64_t K, double cell_size) {
@@ -99,23 +218,16 @@ void p2g_impl(const T* x, const T* v, const T* m, const T* frame, const T* origi
   const int64_t nb = blocks_per_axis(r), nb3 = nb * nb * nb;
   const int64_t pool = K * 3 * kBlockCells * 2; // values of one scene's faces
   const int64_t slabs = (r + kSlab - 1) / kSlab;
+  constexpr int W = lanes_of<T>();
+  const int64_t batches = (P + W - 1) / W;
   std::vector<T> head(size_t(B * P * 6));
   std::vector<int32_t> slab(size_t(B * P));
   std::vector<uint8_t> mark(size_t(B * nb3), 0);
-  at::parallel_for(0, B * P, kParticleGrain, [&](int64_t begin, int64_t end) {
-    for (int64_t q = begin; q < end; ++q) {
-      T* xl = head.data() + 6 * q;
-      to_head(frame + 18 * (q / P), x + 3 * q, v + 3 * q, xl, xl + 3);
-      T cx = grid_floor(cell_coord(xl, origin, h, 0));
-      if (!(cx >= T(0))) cx = T(0); // also NaN
-      if (cx > T(r - 1)) cx = T(r - 1);
-      slab[q] = int32_t(int64_t(cx) / kSlab);
-      int64_t first[3], last[3];
-      if (!particle_blocks(xl, origin, h, r, first, last)) continue;
-      uint8_t* mk = mark.data() + (q / P) * nb3;
-      for (int64_t i = first[0]; i <= last[0]; ++i)
-        for (int64_t j = first[1]; j <= last[1]; ++j)
-          for (int64_t k = first[2]; k <= last[2]; ++k) set_mark(mk + (i * nb + j) * nb + k);
+  at::parallel_for(0, B * batches, kParticleGrain / W, [&](int64_t t0, int64_t t1) {
+    for (int64_t t = t0; t < t1; ++t) {
+      const int64_t b = t / batches, first = (t % batches) * W;
+      p2g_mark(x + 3 * b * P, v + 3 * b * P, frame + 18 * b, origin, h, r, nb, first, int(std::min<int64_t>(W, P - first)),
+               head.data() + 6 * b * P, slab.data() + b * P, mark.data() + b * nb3);
     }
   });
   // per scene: slots in block order, zeroed faces of the used slots, particles sorted by slab
@@ -148,7 +260,6 @@ void p2g_impl(const T* x, const T* v, const T* m, const T* frame, const T* origi
       for (int64_t p = 0; p < P; ++p) order[b * P + fill[slab[b * P + p]]++] = int32_t(p);
     }
   });
-  const auto add = [](T* ptr, T value) { *ptr += value; };
   for (int64_t colour = 0; colour < 2; ++colour) {
     const int64_t per_scene = (slabs - colour + 1) / 2; // slabs colour, colour + 2, ...
     at::parallel_for(0, B * per_scene, 1, [&](int64_t t0, int64_t t1) {
@@ -156,11 +267,9 @@ void p2g_impl(const T* x, const T* v, const T* m, const T* frame, const T* origi
         const int64_t b = t / per_scene;
         const int64_t s = colour + 2 * (t % per_scene);
         const int64_t* st = start.data() + b * (slabs + 1);
-        for (int64_t i = st[s]; i < st[s + 1]; ++i) {
-          const int64_t q = b * P + order[b * P + i];
-          const T* xl = head.data() + 6 * q;
-          p2g_particle(xl, xl + 3, m[q], origin, h, r, nb, table + b * nb3, faces + b * pool, add);
-        }
+        for (int64_t i = st[s]; i < st[s + 1]; i += W)
+          p2g_scatter(head.data() + 6 * b * P, m + b * P, order.data() + b * P, i,
+                      int(std::min<int64_t>(W, st[s + 1] - i)), origin, h, r, nb, table + b * nb3, faces + b * pool);
       }
     });
   }
@@ -225,11 +334,13 @@ void pressure_impl(const T* faces, const int32_t* table, const int32_t* blocks, 
       T* e = entries.get() + u * kBlockCells * kEntry;
       bool pushes = false;
       uint64_t bits = 0;
-      for (int l = 0; l < kBlockCells; ++l)
+      for (uint64_t cand = lower_faces_massive(fs, slot, q.eps); cand; cand &= cand - 1) {
+        const int l = lowest_bit(cand);
         if (cell_entry(fs, slot, l, nu, q, e + kEntry * l)) {
           bits |= uint64_t(1) << l;
           pushes = pushes || e[kEntry * l] > T(0);
         }
+      }
       active[u] = bits;
       awake[u] = pushes;
     }
@@ -281,6 +392,15 @@ void pressure_impl(const T* faces, const int32_t* table, const int32_t* blocks, 
       const T* fs = faces + b * pool * 2;
       const T* ps = phi + b * K * kBlockCells;
       T* out = field + b * pool + slot * 3 * kBlockCells;
+      // phi is 0 outside the awake slots: where neither this slot nor its x-, y-, z- neighbours
+      // are awake, du = -(0 / h) h^3 / M = -0 on every face and the field is pic u exactly
+      bool quiet = !awake[u];
+      for (int d = 0; d < 6 && quiet; d += 2) quiet = nbr[6 * u + d] < 0 || !awake[first[b] + nbr[6 * u + d]];
+      if (quiet) {
+        const T* f = fs + slot * 3 * kBlockCells * 2;
+        for (int i = 0; i < 3 * kBlockCells; ++i) out[i] = f[2 * i] > T(0) ? q.pic * (f[2 * i + 1] / f[2 * i]) : T(0);
+        continue;
+      }
       for (int c = 0; c < 3; ++c)
         for (int l = 0; l < kBlockCells; ++l)
           out[c * kBlockCells + l] = face_field(fs, ps, slot, c, l, nbr.data() + 6 * u, q);
@@ -322,17 +442,62 @@ std::tuple<at::Tensor, at::Tensor> pressure_cpu(const at::Tensor& faces, const a
   return {iterations % 2 == 0 ? phi_a : phi_b, field};
 }
 
+// G2P of particles [q0, q0 + n) of one scene (x, v, xo, vo, free_p: that scene's).
+template <class T>
+void g2p_batch(const T* fr, const T* x, const T* v, const T* field, const int32_t* table, int64_t nb, const T* origin,
+               T h, int64_t r, T pic, const bool* free, int64_t N, T dt, int64_t q0, int n, T* xo, T* vo) {
+#if AMS_GRID_SIMD
+  using V = simd::VecT<T>;
+  using I = simd::IntT<T>;
+  V xs[3], vs[3], xl[3], vl[3];
+  I fm{};
+  for (int lane = 0; lane < simd::Lanes<T>::W; ++lane) {
+    const int64_t q = q0 + (lane < n ? lane : n - 1);
+    for (int a = 0; a < 3; ++a) {
+      xs[a][lane] = x[3 * q + a];
+      vs[a][lane] = v[3 * q + a];
+    }
+    fm[lane] = free[q % N] ? -1 : 0;
+  }
+  simd::to_head<T>(fr, xs, vs, xl, vl);
+  simd::Batch<T> bt;
+  simd::batch_stencil<T>(xl, origin, h, r, nb, table, n, bt);
+  V dv[3];
+  simd::batch_change<T>(bt, field, vl, fm, pic, dv);
+  const V dx[3] = {dt * dv[0], dt * dv[1], dt * dv[2]};
+  V ox[3], ov[3];
+  for (int i = 0; i < 3; ++i) {
+    ox[i] = xs[i] + (fr[3 * i] * dx[0] + fr[3 * i + 1] * dx[1] + fr[3 * i + 2] * dx[2]);
+    ov[i] = vs[i] + (fr[3 * i] * dv[0] + fr[3 * i + 1] * dv[1] + fr[3 * i + 2] * dv[2]);
+  }
+  for (int lane = 0; lane < n; ++lane)
+    for (int a = 0; a < 3; ++a) {
+      xo[3 * (q0 + lane) + a] = ox[a][lane];
+      vo[3 * (q0 + lane) + a] = ov[a][lane];
+    }
+#else
+  for (int lane = 0; lane < n; ++lane) {
+    const int64_t q = q0 + lane;
+    g2p_particle(fr, x + 3 * q, v + 3 * q, field, table, nb, origin, h, r, pic, free[q % N], dt, xo + 3 * q,
+                 vo + 3 * q);
+  }
+#endif
+}
+
 template <class T>
 void g2p_impl(const T* x, const T* v, const T* field, const int32_t* table, const T* frame, const T* origin,
               const bool* free, T dt, T* xo, T* vo, int64_t B, int64_t P, int64_t N, int64_t r, int64_t K,
               double cell_size, double pic) {
   const T h = T(cell_size), pict = T(pic);
   const int64_t nb = blocks_per_axis(r), nb3 = nb * nb * nb;
-  at::parallel_for(0, B * P, kParticleGrain, [&](int64_t begin, int64_t end) {
-    for (int64_t q = begin; q < end; ++q) {
-      const int64_t b = q / P;
-      g2p_particle(frame + 18 * b, x + 3 * q, v + 3 * q, field + b * K * 3 * kBlockCells, table + b * nb3, nb, origin,
-                   h, r, pict, free[(q % P) % N], dt, xo + 3 * q, vo + 3 * q);
+  constexpr int W = lanes_of<T>();
+  const int64_t batches = (P + W - 1) / W;
+  at::parallel_for(0, B * batches, kParticleGrain / W, [&](int64_t t0, int64_t t1) {
+    for (int64_t t = t0; t < t1; ++t) {
+      const int64_t b = t / batches, first = (t % batches) * W;
+      g2p_batch(frame + 18 * b, x + 3 * b * P, v + 3 * b * P, field + b * K * 3 * kBlockCells, table + b * nb3, nb,
+                origin, h, r, pict, free, N, dt, first, int(std::min<int64_t>(W, P - first)), xo + 3 * b * P,
+                vo + 3 * b * P);
     }
   });
 }
