@@ -9,7 +9,7 @@ import torch
 from ams_torch.geometry.pose import Pose
 from ams_torch.stages.hair_hair.config import HairHairGrid
 from ams_torch.stages.hair_hair.detailed import detailed_collisions
-from ams_torch.stages.hair_hair.native import NATIVE_DTYPES, g2p_op, p2g_op, pressure_op
+from ams_torch.stages.hair_hair.native import NATIVE_DTYPES, g2p, p2g, pressure
 from ams_torch.stages.hair_hair.sparse import g2p_sparse, p2g_sparse, pressure_sparse
 from ams_torch.stages.hair_hair.transfer import scene_frame, to_head
 
@@ -135,9 +135,9 @@ def hair_hair_stage(grid: Optional[HairHairGrid], x: torch.Tensor, v: torch.Tens
     if _use_native(backend, (xf, vf, m, frame, origin, target, dtt), x.dtype):
         strict = backend == "native"
         xc, vc, frame, origin = xf.contiguous(), vf.contiguous(), frame.contiguous(), origin.contiguous()
-        faces, table, blocks, count = p2g_op(xc, vc, m.contiguous(), frame, origin, h, r, k, strict)
-        _, field = pressure_op(faces, table, blocks, count, target, dtt, h, r, *solve, strict)
-        x1, v1 = g2p_op(xc, vc, field, table, frame, origin, free, dtt, h, r, pic, strict)
+        faces, table, blocks, count = p2g(xc, vc, m.contiguous(), frame, origin, h, r, k, strict)
+        _, field = pressure(faces, table, blocks, count, target, dtt, h, r, *solve, strict)
+        x1, v1 = g2p(xc, vc, field, table, frame, origin, free, dtt, h, r, pic, strict)
     else:
         stencils: list = []
         faces, table, blocks, count = p2g_sparse(xf, vf, m, frame, origin, h, r, k, stencils)
