@@ -7,12 +7,14 @@ from typing import Optional
 
 import torch
 
-from ams_torch.stages.hair_hair.sparse import block_layout, blocks_per_axis
-from ams_torch.stages.hair_hair.transfer import grid_density
+from ams_torch.stages.hair_hair.sparse import (BLOCK_CELLS, active_cells, block_layout, blocks_per_axis, p2g_sparse,
+                                              pool_density)
+from ams_torch.stages.hair_hair.transfer import scene_frame
 
 __all__ = ["HairHair", "HairHairGrid", "build_hair_hair"]
 
 MIN_AUTO_BLOCKS = 64  # the smallest automatic capacity (blocks per scene)
+MIN_AUTO_ACTIVE = 4096  # the smallest automatic active-cell capacity (cells per scene)
 
 
 def _check_int(name: str, value, minimum: int) -> None:
@@ -58,7 +60,12 @@ class HairHair:
             ``block_margin ×`` the blocks the rest groom occupies (at least 64), at most the whole
             grid. A frame whose hair occupies more blocks is flagged on the device and
             ``Simulator.check`` raises :class:`~ams_torch.sim.step.GridOverflow`.
-        block_margin: multiplier (≥ 1) used when ``max_blocks`` is None. Default 4.
+        block_margin: multiplier (≥ 1) used when ``max_blocks`` or ``max_active_cells`` is None.
+            Default 4.
+        max_active_cells: cells per scene that can carry the pressure (all six faces massive) the
+            torch path's sweeps hold (≥ 1; a static capacity: its sweeps cost this, not the
+            pool). ``None`` (default): ``block_margin ×`` the active cells of the rest groom, at
+            least 4,096, at most the pool's cells. More is flagged on both paths like the blocks.
     """
 
     resolution: int = 128
@@ -75,6 +82,7 @@ class HairHair:
     collision_max_per_cell: int = 8
     max_blocks: Optional[int] = None
     block_margin: float = 4.0
+    max_active_cells: Optional[int] = None
 
     def __post_init__(self):
         _check_int("resolution", self.resolution, 2)
@@ -94,6 +102,8 @@ class HairHair:
         if self.max_blocks is not None:
             _check_int("max_blocks", self.max_blocks, 1)
         _check_real("block_margin", self.block_margin, 1.0)
+        if self.max_active_cells is not None:
+            _check_int("max_active_cells", self.max_active_cells, 1)
 
     def build(self, rest_positions, particle_mass, device=None, dtype=None) -> "HairHairGrid":
         """Fit the grid to the rest groom and allocate its fixed data.
@@ -131,17 +141,28 @@ class HairHair:
         h = side / self.resolution
         origin = (lo + hi) / 2 - side / 2
         whole = blocks_per_axis(self.resolution) ** 3
+        # the rest groom on a pool that just holds it: its blocks, peak density and active cells
+        head = rest.reshape(1, -1, 3)
+        occupied = int(block_layout(head, origin, h, self.resolution, whole)[2])
+        frame = scene_frame(None, (), 1, dtype, rest.device)
+        pool = p2g_sparse(head, torch.zeros_like(head), mass.reshape(1, -1), frame, origin, h, self.resolution,
+                          max(1, occupied))
         if self.max_blocks is not None:
             capacity = min(self.max_blocks, whole)
         else:
-            occupied = int(block_layout(rest.reshape(1, -1, 3), origin, h, self.resolution, whole)[2])
             capacity = min(whole, max(MIN_AUTO_BLOCKS, math.ceil(self.block_margin * occupied)))
         grid = HairHairGrid(self, h, origin, torch.ones((), device=rest.device, dtype=dtype), s, n, capacity)
         if self.target_density is not None:
             target = torch.as_tensor(self.target_density, device=rest.device, dtype=dtype)
-        else:
-            target = grid_density(grid, rest, mass, None).max() * self.target_density_margin
+        else:  # the peak of grid_density(rest), read from the pool (no R³ array)
+            target = pool_density(*pool[:3], h, self.resolution).max() * self.target_density_margin
         grid.target_density = target.detach().clone()
+        cells = capacity * BLOCK_CELLS
+        if self.max_active_cells is not None:
+            grid.active_capacity = min(self.max_active_cells, cells)
+        else:
+            active = int(active_cells(*pool[:3], grid.target_density, h, self.resolution))
+            grid.active_capacity = min(cells, max(MIN_AUTO_ACTIVE, math.ceil(self.block_margin * active)))
         return grid
 
 
@@ -161,6 +182,8 @@ class HairHairGrid(torch.nn.Module):
         num_strands, num_particles: S and N of the groom it was fitted to.
         capacity: K, blocks of 4³ cells per scene (``config.max_blocks``, or what the build
             derived from the rest groom; default here: the whole grid).
+        active_capacity: active cells per scene the torch path's sweeps hold
+            (``config.max_active_cells`` or derived; default here: every pool cell).
         hash_size: cells per axis of the detailed-collision hash (cell size = collision radius).
     """
 
@@ -182,6 +205,7 @@ class HairHairGrid(torch.nn.Module):
         if not 1 <= self.capacity <= whole:
             raise ValueError(f"capacity must be in [1, {whole}] blocks for resolution {self.resolution}; "
                              f"got {capacity!r}")
+        self.active_capacity = self.capacity * BLOCK_CELLS
         self.hash_size = int(math.ceil(self.cell_size * self.resolution / config.collision_radius)) + 3
         self.register_buffer("origin", origin)
         self.register_buffer("target_density", target_density)
@@ -198,7 +222,7 @@ class HairHairGrid(torch.nn.Module):
 
     def extra_repr(self) -> str:
         return (f"resolution={self.resolution}, cell_size={self.cell_size:.4g} m, strands={self.num_strands}, "
-                f"particles={self.num_particles}, capacity={self.capacity} blocks")
+                f"particles={self.num_particles}, capacity={self.capacity} blocks, {self.active_capacity} active cells")
 
 
 def build_hair_hair(config: Optional[HairHair], rest_positions, particle_mass, device=None,

@@ -22,7 +22,10 @@ at or beyond ``min(count, K)`` are left unwritten):
   two threads write the same face and every face sums its contributions in one fixed order:
   results do not depend on the thread count. On CUDA: one thread per particle, atomicAdd
   (summation order, hence the last bits, vary between runs).
-* **Pressure**: per used slot, the entries of its 64 cells (zero for cells that cannot carry φ).
+* **Pressure**: per used slot, the entries of its 64 cells (zero for cells that cannot carry φ);
+  the active cells are counted per scene (the torch path sweeps a list of them with a static
+  capacity, ``HairHairGrid.active_capacity``; the kernels need no list, and report the count so
+  that both paths flag the same overflow).
   Scenes where no cell has b > 0 skip the sweeps (φ stays exactly 0, as on the torch path):
   decided on the device, no host sync. CPU: the sweeps visit only the slots φ can have reached
   (those with a pushing cell, then the neighbours of slots where φ became non-zero), with the
@@ -96,20 +99,21 @@ def _p2g_fake(x, v, m, frame, origin, cell_size, resolution, capacity, require_n
 @torch.library.custom_op("ams_torch::hair_hair_pressure", mutates_args=())
 def pressure_op(faces: torch.Tensor, table: torch.Tensor, blocks: torch.Tensor, count: torch.Tensor,
                 target_density: torch.Tensor, dt: torch.Tensor, cell_size: float, resolution: int, iterations: int,
-                omega: float, stiffness: float, pic: float,
-                require_native: bool) -> tuple[torch.Tensor, torch.Tensor]:
-    """faces: (B, K, 3, 64, 2); table, blocks, count from P2G; target_density, dt: () tensors.
-    Returns phi (B, K, 64), field (B, K, 3, 64)."""
+                omega: float, stiffness: float, pic: float, active_capacity: int,
+                require_native: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """faces: (B, K, 3, 64, 2); table, blocks, count from P2G; target_density, dt: () tensors;
+    active_capacity: active cells per scene the torch sweeps hold. Returns phi (B, K, 64), field
+    (B, K, 3, 64) and active (B,) int32 (0 without sweeps)."""
     return pressure_sparse(faces, table, blocks, target_density, dt, cell_size, resolution, iterations, omega,
-                           stiffness, pic)
+                           stiffness, pic, active_capacity)
 
 
 def _pressure_kernel(faces, table, blocks, count, target_density, dt, cell_size, resolution, iterations, omega,
-                     stiffness, pic, require_native):
+                     stiffness, pic, active_capacity, require_native):
     ns = _namespace(faces, require_native, "pressure")
     if ns is None:
         return pressure_sparse(faces, table, blocks, target_density, dt, cell_size, resolution, iterations, omega,
-                               stiffness, pic)
+                               stiffness, pic, active_capacity)
     return tuple(ns.pressure(faces, table, blocks, count, target_density, dt, cell_size, resolution, iterations,
                              omega, stiffness, pic))
 
@@ -120,9 +124,10 @@ pressure_op.register_kernel("cuda")(_pressure_kernel)
 
 @pressure_op.register_fake
 def _pressure_fake(faces, table, blocks, count, target_density, dt, cell_size, resolution, iterations, omega,
-                   stiffness, pic, require_native):
+                   stiffness, pic, active_capacity, require_native):
     b, k = faces.shape[:2]
-    return faces.new_empty(b, k, BLOCK_CELLS), faces.new_empty(b, k, 3, BLOCK_CELLS)
+    return (faces.new_empty(b, k, BLOCK_CELLS), faces.new_empty(b, k, 3, BLOCK_CELLS),
+            torch.empty(b, dtype=torch.int32, device=faces.device))
 
 
 # -- G2P ---------------------------------------------------------------------------------------
@@ -166,10 +171,10 @@ def p2g(x, v, m, frame, origin, cell_size: float, resolution: int, capacity: int
 
 
 def pressure(faces, table, blocks, count, target_density, dt, cell_size: float, resolution: int, iterations: int,
-             omega: float, stiffness: float, pic: float, require_native: bool):
+             omega: float, stiffness: float, pic: float, active_capacity: int, require_native: bool):
     """:func:`pressure_op` (no gradient)."""
     args = (faces, table, blocks, count, target_density, dt, cell_size, resolution, iterations, omega, stiffness, pic,
-            require_native)
+            active_capacity, require_native)
     return _pressure_kernel(*args) if _direct(faces) else pressure_op(*args)
 
 

@@ -46,7 +46,7 @@ from ams_torch.stages.hair_hair.pressure import ACTIVE_FACE_DENSITY
 from ams_torch.stages.hair_hair.transfer import apply_change, face_corners, interpolate_change, to_head
 
 __all__ = ["BLOCK", "BLOCK_CELLS", "blocks_per_axis", "block_layout", "pool_stencil", "pool_neighbours",
-           "p2g_sparse", "pressure_sparse", "g2p_sparse", "densify"]
+           "p2g_sparse", "pressure_sparse", "g2p_sparse", "pool_density", "active_cells", "densify"]
 
 BLOCK = 4  # cells per block and axis
 BLOCK_CELLS = BLOCK ** 3
@@ -134,7 +134,7 @@ def p2g_sparse(x: torch.Tensor, v: torch.Tensor, m: torch.Tensor, frame: torch.T
         vals.append(wc[..., None] * mv[:, :, None, :])
     size = b * capacity * 3 * BLOCK_CELLS
     acc = torch.zeros(size + 1, 2, device=x.device, dtype=x.dtype)
-    acc = acc.index_add(0, torch.stack(idx, 0).reshape(-1), torch.stack(vals, 0).reshape(-1, 2))
+    acc.index_add_(0, torch.stack(idx, 0).reshape(-1), torch.stack(vals, 0).reshape(-1, 2))
     return acc[:size].reshape(b, capacity, 3, BLOCK_CELLS, 2), table, blocks, count
 
 
@@ -156,57 +156,133 @@ def pool_neighbours(blocks: torch.Tensor, table: torch.Tensor, r: int) -> torch.
     return torch.where(ok, slot, -1)
 
 
-def _cell_neighbours(nbr: torch.Tensor) -> torch.Tensor:
-    """(B, K, 64, 6) long: flat index of each pool cell's six neighbours (x−, x+, y−, y+, z−, z+)
-    into a (B·K·64) cell array followed by one zero sentinel (index B·K·64)."""
-    b, k = nbr.shape[:2]
-    dev = nbr.device
-    loc = torch.arange(BLOCK_CELLS, device=dev)
-    local_nb, cross = [], []
-    for d in range(6):
-        axis, step = d // 2, (1 if d % 2 else -1)
-        stride = _STRIDES[axis]
-        coord = (loc // stride) % BLOCK + step
-        out = (coord < 0) | (coord >= BLOCK)
-        cross.append(out)
-        local_nb.append(loc + step * stride - torch.where(out, step * BLOCK * stride, 0))
-    local_nb, cross = torch.stack(local_nb, -1), torch.stack(cross, -1)  # (64, 6)
-    scene = torch.arange(b, device=dev)[:, None] * k
-    own = scene + torch.arange(k, device=dev)  # (B, K) global slot
-    other = torch.where(nbr >= 0, scene[..., None] + nbr, -1)  # (B, K, 6)
-    slot = torch.where(cross, other[:, :, None, :], own[:, :, None, None])
-    return torch.where(slot >= 0, slot * BLOCK_CELLS + local_nb, b * k * BLOCK_CELLS)
-
-
 def _with_sentinel(t: torch.Tensor) -> torch.Tensor:
     flat = t.reshape(-1)
     return torch.cat((flat, flat.new_zeros(1)))
 
 
-def pressure_sparse(faces: torch.Tensor, table: torch.Tensor, blocks: torch.Tensor, target_density: torch.Tensor,
-                    dt, cell_size: float, resolution: int, iterations: int, omega: float, stiffness: float,
-                    pic: float):
-    """The pressure solve and the face field on the pool (definition of the native ``pressure``):
-    :func:`~.pressure.pressure_torch` cell by cell and face by face, in its order of operations.
+def _cubes(t: torch.Tensor) -> torch.Tensor:
+    """(B, K, 64, ...) → (B, K, 4, 4, 4, ...): a block's cells (or one component's faces) as a cube."""
+    return t.reshape(t.shape[:2] + (BLOCK, BLOCK, BLOCK) + t.shape[3:])
 
-    faces: (B, K, 3, 64, 2) from :func:`p2g_sparse`; table (B, nb³), blocks (B, K) int32;
-    target_density () kg/m³; dt s; the rest as ``pressure_torch``. Returns phi (B, K, 64)
-    kg/(m·s) and field (B, K, 3, 64) m/s.
-    """
-    h = cell_size
-    h2, h3 = h * h, h * h * h
-    b, k = faces.shape[:2]
-    rho0 = target_density.to(faces.dtype)
-    mass, mom = faces[..., 0], faces[..., 1]  # (B, K, 3, 64)
-    eps = rho0 * (ACTIVE_FACE_DENSITY * h3)
-    vel = torch.where(mass > 0, mom / torch.where(mass > 0, mass, torch.ones_like(mass)), torch.zeros_like(mass))
+
+def _shifted(cube: torch.Tensor, nbr: torch.Tensor, d: int) -> torch.Tensor:
+    """The values of the next cell in direction d (0..5: x−, x+, y−, y+, z−, z+) for every cell of
+    every block: cube (B, K, 4, 4, 4, ...), nbr (B, K, 6) slots from :func:`pool_neighbours`; the
+    layer that leaves the block comes from the neighbouring block (zeros where it has no slot)."""
+    axis, up = 2 + d // 2, d % 2 == 1
+    b, k = cube.shape[:2]
+    slot = nbr[..., d]
+    layer = cube.narrow(axis, 0 if up else BLOCK - 1, 1)[torch.arange(b, device=cube.device)[:, None],
+                                                          slot.clamp_min(0)]
+    has = (slot >= 0).reshape((b, k) + (1,) * (layer.dim() - 2))
+    layer = torch.where(has, layer, torch.zeros_like(layer))
+    inner = cube.narrow(axis, 1, BLOCK - 1) if up else cube.narrow(axis, 0, BLOCK - 1)
+    return torch.cat((inner, layer) if up else (layer, inner), axis)
+
+
+def _velocity(mass: torch.Tensor, mom: torch.Tensor) -> torch.Tensor:
+    """u = momentum / mass on faces, 0 where massless (pressure.py's ``vel``)."""
+    return torch.where(mass > 0, mom / torch.where(mass > 0, mass, torch.ones_like(mass)), torch.zeros_like(mass))
+
+
+def _inverse_density(mass: torch.Tensor, eps, h3: float) -> torch.Tensor:
+    """1/ρ_f = h³ / M on faces above ε, 0 elsewhere (pressure.py's ``inv_rho``)."""
     has = mass > eps
-    inv = torch.where(has, h3 / torch.where(has, mass, torch.ones_like(mass)), torch.zeros_like(mass))
-    nbr = _cell_neighbours(pool_neighbours(blocks, table, resolution)).reshape(-1, 6)  # (B·K·64, 6)
-    lower = [[t[:, :, c].reshape(-1) for c in range(3)] for t in (mass, vel, inv)]
-    upper = [[_with_sentinel(t[:, :, c])[nbr[:, 2 * c + 1]] for c in range(3)] for t in (mass, vel, inv)]
-    (m_lo, v_lo, lo), (m_hi, v_hi, hi) = lower, upper
+    return torch.where(has, h3 / torch.where(has, mass, torch.ones_like(mass)), torch.zeros_like(mass))
 
+
+def _active(faces: torch.Tensor, nbr: torch.Tensor, eps) -> torch.Tensor:
+    """(B·K·64,) bool: the pool cells whose six faces all have mass above ε (the lower c-face of a
+    cell is its own, the upper one the next cell's along c)."""
+    active = None
+    for c in range(3):
+        mass = faces[:, :, c, :, 0]
+        upper = _shifted(_cubes(mass), nbr, 2 * c + 1).reshape(mass.shape)
+        both = (mass > eps) & (upper > eps)
+        active = both if active is None else active & both
+    return active.reshape(-1)
+
+
+def pool_density(faces: torch.Tensor, table: torch.Tensor, blocks: torch.Tensor, cell_size: float,
+                 resolution: int) -> torch.Tensor:
+    """(B, K·64) kg/m³: the density of every pool cell, as :func:`~.transfer.grid_density` gives it
+    on the dense grid (cells without a slot have none, i.e. 0)."""
+    h3 = cell_size * cell_size * cell_size
+    nbr = pool_neighbours(blocks, table, resolution)
+    total = None
+    for c in range(3):
+        mass = faces[:, :, c, :, 0]
+        upper = _shifted(_cubes(mass), nbr, 2 * c + 1).reshape(mass.shape)
+        pair = 0.5 * (mass + upper)
+        total = pair if total is None else total + pair
+    return (total / 3.0 / h3).reshape(faces.shape[0], -1)
+
+
+def active_cells(faces: torch.Tensor, table: torch.Tensor, blocks: torch.Tensor, target_density: torch.Tensor,
+                 cell_size: float, resolution: int) -> torch.Tensor:
+    """(B,) int64: cells that can carry φ (all six faces above ε) in each scene's pool."""
+    h = cell_size
+    eps = target_density.to(faces.dtype) * (ACTIVE_FACE_DENSITY * h * h * h)
+    return _active(faces, pool_neighbours(blocks, table, resolution), eps).reshape(faces.shape[0], -1).sum(1)
+
+
+def _listed_neighbours(cell: torch.Tensor, nbr: torch.Tensor, k: int) -> torch.Tensor:
+    """(B, L, 6) long: the pool cells (within their scene; K·64 = none) next to the pool cells
+    ``cell`` (B, L) (K·64 = no cell) in the directions x−, x+, y−, y+, z−, z+; nbr (B, K, 6) the
+    neighbour slots."""
+    none = k * BLOCK_CELLS
+    scene = torch.arange(cell.shape[0], device=cell.device)[:, None]
+    slot, loc = cell // BLOCK_CELLS, cell % BLOCK_CELLS
+    safe = slot.clamp(0, k - 1)
+    out = []
+    for d in range(6):
+        stride, step = _STRIDES[d // 2], (1 if d % 2 else -1)
+        coord = (loc // stride) % BLOCK + step
+        leave = (coord < 0) | (coord >= BLOCK)
+        to = torch.where(leave, nbr[scene, safe, d], slot)
+        local = loc + step * stride - torch.where(leave, step * BLOCK * stride, 0)
+        out.append(torch.where((to >= 0) & (cell < none), to * BLOCK_CELLS + local, none))
+    return torch.stack(out, -1)
+
+
+def _take(values: torch.Tensor, index: torch.Tensor, size: int) -> torch.Tensor:
+    """values (size, ...) at index, zero where index == size (the "none" index)."""
+    got = values.index_select(0, index.clamp(max=size - 1))
+    keep = (index < size).reshape((-1,) + (1,) * (got.dim() - 1))
+    return torch.where(keep, got, torch.zeros_like(got))
+
+
+def _solve(faces, nbr, active, rho0, dt, h: float, cap: int, iterations: int, omega: float, stiffness: float):
+    """φ (B·K·64,) on the pool, the listed cells (B·cap,) and their neighbours (B·cap, 6) (global
+    pool cells; B·K·64 = none): the projected Jacobi sweeps of pressure.py, run on a list of each
+    scene's active cells (static capacity ``cap``, in cell order; cells beyond it are left out,
+    which the caller reports). The cell terms (ρ, ∇·u, 1/ρ_f of the six faces, b) are those of
+    pressure.py for the listed cells; an inactive cell has coef = src = 0 and stays 0, so the
+    values are those of sweeping every cell."""
+    b, k = faces.shape[:2]
+    h2, h3 = h * h, h * h * h
+    dev = faces.device
+    cells = k * BLOCK_CELLS
+    act = active.reshape(b, cells)
+    pos = act.long().cumsum(1) - 1
+    ok = act & (pos < cap)
+    every = torch.arange(cells, device=dev).expand(b, cells)
+    listed = torch.full((b, cap + 1), cells, dtype=torch.long, device=dev)
+    listed = listed.scatter_(1, torch.where(ok, pos, cap), every)[:, :cap]  # column cap: discarded
+    scene = torch.arange(b, device=dev)[:, None]
+    near = _listed_neighbours(listed, nbr, k)  # (B, cap, 6) pool cells within the scene
+    none = b * cells
+    g = torch.where(listed < cells, listed + scene * cells, none).reshape(-1)  # (B·cap,) global pool cells
+    near_g = torch.where(near < cells, near + scene[..., None] * cells, none).reshape(-1, 6)
+    m_lo, v_lo, lo, m_hi, v_hi, hi = [], [], [], [], [], []
+    for c in range(3):
+        flat = faces[:, :, c].reshape(-1, 2)  # (B·K·64, 2): this component's faces
+        for out_m, out_v, out_i, at in ((m_lo, v_lo, lo, g), (m_hi, v_hi, hi, near_g[:, 2 * c + 1])):
+            mm = _take(flat, at, none)
+            out_m.append(mm[:, 0])
+            out_v.append(_velocity(mm[:, 0], mm[:, 1]))
+            out_i.append(_inverse_density(mm[:, 0], rho0 * (ACTIVE_FACE_DENSITY * h3), h3))
     total = None
     for c in range(3):
         pair = 0.5 * (m_lo[c] + m_hi[c])
@@ -217,33 +293,87 @@ def pressure_sparse(faces: torch.Tensor, table: torch.Tensor, blocks: torch.Tens
         dc = v_hi[c] - v_lo[c]
         div = dc if div is None else div + dc
     div = div / h
-    active = None
     diag = None
     for c in range(3):
-        both = (m_lo[c] > eps) & (m_hi[c] > eps)
-        active = both if active is None else active & both
         diag = lo[c] + hi[c] if diag is None else diag + lo[c] + hi[c]
-    safe = torch.where(active, rho, torch.ones_like(rho))
+    on = g < none  # listed (every listed cell is active)
+    safe = torch.where(on, rho, torch.ones_like(rho))
     rhs = stiffness * (1 - rho0 / safe) / dt
     rhs = torch.where(rho > rho0, torch.maximum(rhs, -div), rhs)
-    coef = torch.where(active, omega / torch.where(active, diag, torch.ones_like(diag)), torch.zeros_like(diag))
-    src = coef * (h2 * rhs)  # 0 off the active cells
-    phi = torch.zeros_like(rho)
+    coef = torch.where(on, omega / torch.where(on, diag, torch.ones_like(diag)), torch.zeros_like(diag))
+    src = coef * (h2 * rhs)
     weights = (lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])
+    # list slots of the neighbours, one contiguous row per direction; slot B·cap is a zero that
+    # stays zero (its src, coef and weights are 0)
+    rank = torch.where(ok, pos + scene * cap, b * cap)  # pool cell → list slot, or B·cap
+    rank = torch.cat((rank, rank.new_full((b, 1), b * cap)), 1)  # column `cells`: no neighbour
+    nbr_l = torch.gather(rank, 1, near.reshape(b, -1)).reshape(-1, 6).t()
+    nbr_l = torch.cat((nbr_l, nbr_l.new_full((6, 1), b * cap)), 1).contiguous()  # (6, B·cap + 1)
+    pad = lambda t: torch.cat((t, t.new_zeros(1)))  # noqa: E731
+    src, coef, w_l = pad(src), pad(coef), [pad(w) for w in weights]
+    phi_l = torch.zeros_like(src)
     for _ in range(iterations):
-        padded = _with_sentinel(phi)
-        n = weights[0] * padded[nbr[:, 0]]
+        n = w_l[0] * phi_l.index_select(0, nbr_l[0])
         for d in range(1, 6):
-            n = n + weights[d] * padded[nbr[:, d]]
+            n = n + w_l[d] * phi_l.index_select(0, nbr_l[d])
         nxt = src + coef * n
-        phi = (nxt + (1.0 - omega) * phi).clamp_min(0)
-    padded = _with_sentinel(phi)
+        phi_l = (nxt + (1.0 - omega) * phi_l).clamp_min(0)
+    phi = torch.zeros(none + 1, dtype=faces.dtype, device=dev)
+    phi.scatter_(0, pad(g), phi_l)  # the padding slot (and unused list slots) land on slot `none`
+    return phi[:-1], g, near_g
+
+
+def pressure_sparse(faces: torch.Tensor, table: torch.Tensor, blocks: torch.Tensor, target_density: torch.Tensor,
+                    dt, cell_size: float, resolution: int, iterations: int, omega: float, stiffness: float,
+                    pic: float, active_capacity: Optional[int] = None):
+    """The pressure solve and the face field on the pool (definition of the native ``pressure``):
+    :func:`~.pressure.pressure_torch` cell by cell and face by face, in its order of operations.
+
+    faces: (B, K, 3, 64, 2) from :func:`p2g_sparse`; table (B, nb³), blocks (B, K) int32;
+    target_density () kg/m³; dt s; the rest as ``pressure_torch``; active_capacity: the active
+    cells per scene the sweeps hold (a static capacity, default every pool cell: the sweeps and
+    the cell terms cost this, not the pool; see :func:`_solve`). Returns phi (B, K, 64)
+    kg/(m·s), field (B, K, 3, 64) m/s and active (B,) int32: each scene's active cells (0 without
+    sweeps); ``active > active_capacity`` is an overflow (the cells beyond it kept φ = 0).
+    """
+    h = cell_size
+    h3 = h * h * h
+    b, k = faces.shape[:2]
+    cap = k * BLOCK_CELLS if active_capacity is None else min(int(active_capacity), k * BLOCK_CELLS)
+    rho0 = target_density.to(faces.dtype)
+    eps = rho0 * (ACTIVE_FACE_DENSITY * h3)
+    nbr = pool_neighbours(blocks, table, resolution)
+    # field = pic u + Δu with Δu = −(∇φ)_f / ρ_f: φ is 0 off the listed cells, so Δu = −0 on every
+    # face but those of listed cells, where pic u + Δu is computed and written below
     field = []
     for c in range(3):
-        grad = (phi - padded[nbr[:, 2 * c]]) / h
-        du = -(grad * lo[c])
-        field.append((pic * v_lo[c] + du).reshape(b, k, BLOCK_CELLS))
-    return phi.reshape(b, k, BLOCK_CELLS), torch.stack(field, 2)
+        mass, mom = faces[:, :, c, :, 0], faces[:, :, c, :, 1]
+        field.append(pic * _velocity(mass, mom))
+    field = torch.stack(field, 2)  # (B, K, 3, 64)
+    if iterations == 0:
+        return faces.new_zeros(b, k, BLOCK_CELLS), field, torch.zeros(b, dtype=torch.int32, device=faces.device)
+    active = _active(faces, nbr, eps)
+    phi, g, near_g = _solve(faces, nbr, active, rho0, dt, h, cap, iterations, omega, stiffness)
+    none = b * k * BLOCK_CELLS
+    listed = torch.zeros(none + 1, dtype=torch.bool, device=faces.device)
+    listed[g] = True  # slot `none`: unused list slots
+    listed[none] = False
+    phi_pad = torch.cat((phi, phi.new_zeros(1)))
+    out = torch.cat((field.permute(2, 0, 1, 3).reshape(3, -1), field.new_zeros(3, 1)), 1)  # (3, none + 1)
+    for c in range(3):
+        flat = faces[:, :, c].reshape(-1, 2)
+        below = near_g[:, 2 * c]  # the cell under each listed cell's lower c-face
+        above = near_g[:, 2 * c + 1]  # the cell over its upper c-face (whose lower c-face that is)
+        # each face once: a listed cell's lower face, and its upper face unless the cell above is
+        # listed too (then it is that cell's lower face)
+        for face, hi, lo, use in ((g, g, below, g < none), (above, above, g, (above < none) & ~listed[above])):
+            mm = _take(flat, face, none)
+            grad = (phi_pad[hi] - phi_pad[lo]) / h
+            du = -(grad * _inverse_density(mm[:, 0], eps, h3))
+            value = pic * _velocity(mm[:, 0], mm[:, 1]) + du
+            out[c].index_put_((torch.where(use, face, none),), value)
+    field = out[:, :-1].reshape(3, b, k, BLOCK_CELLS).permute(1, 2, 0, 3)
+    return phi.reshape(b, k, BLOCK_CELLS), field, active.reshape(b, -1).sum(1).to(torch.int32)
 
 
 def g2p_sparse(x: torch.Tensor, v: torch.Tensor, field: torch.Tensor, table: torch.Tensor, frame: torch.Tensor,

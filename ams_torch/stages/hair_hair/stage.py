@@ -112,9 +112,10 @@ def hair_hair_stage(grid: Optional[HairHairGrid], x: torch.Tensor, v: torch.Tens
         (x', v'): (..., S, N, 3) metres and m/s, with ``x' = x + dt (v' − v)`` for the grid part
         (plus the position push of detailed collisions, when enabled); with ``with_overflow``,
         (x', v', overflow): overflow () bool, True when some scene's hair occupied more blocks
-        than ``grid.capacity`` (the blocks beyond it were left out of this frame's grid: the
-        result is not the grid's; ``Simulator.check`` raises). Never set when the capacity is
-        the whole grid.
+        than ``grid.capacity`` (the blocks beyond it were left out of this frame's grid) or had
+        more active cells than ``grid.active_capacity`` (the cells beyond it kept φ = 0): the
+        result is not the grid's, and ``Simulator.check`` raises. Never set when both
+        capacities are the whole grid.
 
     No host synchronisation, no data-dependent branch or shape: capturable by
     ``torch.compile(fullgraph=True)`` and CUDA graphs (for graphs, keep the grid, ``free``,
@@ -136,17 +137,18 @@ def hair_hair_stage(grid: Optional[HairHairGrid], x: torch.Tensor, v: torch.Tens
         strict = backend == "native"
         xc, vc, frame, origin = xf.contiguous(), vf.contiguous(), frame.contiguous(), origin.contiguous()
         faces, table, blocks, count = p2g(xc, vc, m.contiguous(), frame, origin, h, r, k, strict)
-        _, field = pressure(faces, table, blocks, count, target, dtt, h, r, *solve, strict)
+        _, field, active = pressure(faces, table, blocks, count, target, dtt, h, r, *solve, grid.active_capacity,
+                                    strict)
         x1, v1 = g2p(xc, vc, field, table, frame, origin, free, dtt, h, r, pic, strict)
     else:
         stencils: list = []
         faces, table, blocks, count = p2g_sparse(xf, vf, m, frame, origin, h, r, k, stencils)
-        _, field = pressure_sparse(faces, table, blocks, target, dtt, h, r, *solve)
+        _, field, active = pressure_sparse(faces, table, blocks, target, dtt, h, r, *solve, grid.active_capacity)
         x1, v1 = g2p_sparse(xf, vf, field, table, frame, origin, free, dtt, h, r, pic, stencils)
     if cfg.detailed_collisions:
         x1, v1 = _after_detailed_collisions(grid, xf, x1, v1, m, frame, free)
     out = x1.reshape(x.shape), v1.reshape(v.shape)
-    return out + ((count > k).any(),) if with_overflow else out
+    return out + (((count > k) | (active > grid.active_capacity)).any(),) if with_overflow else out
 
 
 def _after_detailed_collisions(grid, x, x1, v1, m, frame, free):

@@ -77,6 +77,16 @@ uint64_t lower_faces_massive(const T* faces, int64_t slot, T eps) {
   return bits;
 }
 
+int popcount(uint64_t bits) {
+#if defined(__GNUC__)
+  return __builtin_popcountll(bits);
+#else
+  int n = 0;
+  for (; bits; bits &= bits - 1) ++n;
+  return n;
+#endif
+}
+
 void check_common(const char* op, const at::Tensor& t, const char* name, at::ScalarType dtype) {
   TORCH_CHECK(t.device().is_cpu(), "ams_torch_grid_cpu::", op, ": ", name, " must be a CPU tensor");
   TORCH_CHECK(t.scalar_type() == dtype, "ams_torch_grid_cpu::", op, ": ", name, " must be ", dtype, ", got ",
@@ -306,8 +316,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> p2g_cpu(const at::Ten
 
 template <class T>
 void pressure_impl(const T* faces, const int32_t* table, const int32_t* blocks, const int32_t* count, T rho0, T dt,
-                   T* phi_a, T* phi_b, T* field, int64_t B, int64_t r, int64_t K, double cell_size, int64_t iterations,
-                   double omega, double stiffness, double pic) {
+                   T* phi_a, T* phi_b, T* field, int32_t* active_count, int64_t B, int64_t r, int64_t K,
+                   double cell_size, int64_t iterations, double omega, double stiffness, double pic) {
   const PressureConsts<T> q = pressure_consts<T>(cell_size, rho0, dt, omega, stiffness, pic);
   const int64_t nb = blocks_per_axis(r), nb3 = nb * nb * nb;
   const int64_t pool = K * 3 * kBlockCells; // faces of one scene
@@ -315,6 +325,7 @@ void pressure_impl(const T* faces, const int32_t* table, const int32_t* blocks, 
   std::vector<int64_t> first(size_t(B + 1), 0);
   for (int64_t b = 0; b < B; ++b) first[b + 1] = first[b] + std::min<int64_t>(std::max(count[b], 0), K);
   const int64_t U = first[B];
+  std::fill(active_count, active_count + B, 0);
   if (U == 0) return;
   std::vector<int32_t> scene(static_cast<size_t>(U));
   for (int64_t b = 0; b < B; ++b) std::fill(scene.begin() + first[b], scene.begin() + first[b + 1], int32_t(b));
@@ -346,6 +357,7 @@ void pressure_impl(const T* faces, const int32_t* table, const int32_t* blocks, 
     }
   });
   if (iterations > 0) {
+    for (int64_t u = 0; u < U; ++u) active_count[scene[u]] += int32_t(popcount(active[u]));
     std::vector<int64_t> list;
     for (int64_t u = 0; u < U; ++u)
       if (awake[u]) list.push_back(u);
@@ -408,7 +420,7 @@ void pressure_impl(const T* faces, const int32_t* table, const int32_t* blocks, 
   });
 }
 
-std::tuple<at::Tensor, at::Tensor> pressure_cpu(const at::Tensor& faces, const at::Tensor& table,
+std::tuple<at::Tensor, at::Tensor, at::Tensor> pressure_cpu(const at::Tensor& faces, const at::Tensor& table,
                                                 const at::Tensor& blocks, const at::Tensor& count,
                                                 const at::Tensor& target, const at::Tensor& dt, double cell_size,
                                                 int64_t resolution, int64_t iterations, double omega,
@@ -431,15 +443,17 @@ std::tuple<at::Tensor, at::Tensor> pressure_cpu(const at::Tensor& faces, const a
   at::Tensor phi_a = at::empty({B, K, kBlockCells}, faces.options());
   at::Tensor phi_b = at::empty({B, K, kBlockCells}, faces.options());
   at::Tensor field = at::empty({B, K, 3, kBlockCells}, faces.options());
-  if (B == 0) return {phi_a, field};
+  at::Tensor active = at::empty({B}, faces.options().dtype(at::kInt));
+  if (B == 0) return {phi_a, field, active};
   const at::Tensor fc = faces.contiguous(), tc = table.contiguous(), bc = blocks.contiguous(), cc = count.contiguous();
   AT_DISPATCH_FLOATING_TYPES(dtype, "ams_torch_grid_cpu::pressure", [&] {
     pressure_impl<scalar_t>(fc.const_data_ptr<scalar_t>(), tc.const_data_ptr<int32_t>(), bc.const_data_ptr<int32_t>(),
                             cc.const_data_ptr<int32_t>(), target.item<scalar_t>(), dt.item<scalar_t>(),
                             phi_a.mutable_data_ptr<scalar_t>(), phi_b.mutable_data_ptr<scalar_t>(),
-                            field.mutable_data_ptr<scalar_t>(), B, r, K, cell_size, iterations, omega, stiffness, pic);
+                            field.mutable_data_ptr<scalar_t>(), active.mutable_data_ptr<int32_t>(), B, r, K, cell_size,
+                            iterations, omega, stiffness, pic);
   });
-  return {iterations % 2 == 0 ? phi_a : phi_b, field};
+  return {iterations % 2 == 0 ? phi_a : phi_b, field, active};
 }
 
 // G2P of particles [q0, q0 + n) of one scene (x, v, xo, vo, free_p: that scene's).
@@ -540,7 +554,8 @@ TORCH_LIBRARY(ams_torch_grid_cpu, m) {
   m.def("p2g(Tensor x, Tensor v, Tensor m, Tensor frame, Tensor origin, float cell_size, int resolution, "
         "int capacity) -> (Tensor, Tensor, Tensor, Tensor)");
   m.def("pressure(Tensor faces, Tensor table, Tensor blocks, Tensor count, Tensor target, Tensor dt, "
-        "float cell_size, int resolution, int iterations, float omega, float stiffness, float pic) -> (Tensor, Tensor)");
+        "float cell_size, int resolution, int iterations, float omega, float stiffness, float pic) -> (Tensor, Tensor, "
+        "Tensor)");
   m.def("g2p(Tensor x, Tensor v, Tensor field, Tensor table, Tensor frame, Tensor origin, Tensor free, Tensor dt, "
         "float cell_size, int resolution, float pic) -> (Tensor, Tensor)");
 }

@@ -7,8 +7,8 @@
 //        marked block a slot (one thread per block of the grid's nb^3 table, atomicAdd per scene:
 //        slots in any order), then one thread per particle, atomicAdd of mass and momentum into
 //        the pool (summation order, hence the last bits, vary between runs).
-//   pressure: the neighbour slots of every used slot; the entries of every used cell (a cell
-//        with src > 0 marks its scene as pushing); then ONE launch for all Jacobi sweeps: one
+//   pressure: the neighbour slots of every used slot; the entries of every used cell (active
+//        cells are counted per scene; one with src > 0 marks its scene as pushing); then ONE launch for all Jacobi sweeps: one
 //        thread block per scene loops over the cells of its used slots, __syncthreads() between
 //        sweeps (double-buffered phi, so the result does not depend on the order); a scene that
 //        does not push returns at once (phi stays 0). Then the face field of every used slot.
@@ -106,8 +106,8 @@ __global__ void neighbours_kernel(const int32_t* table, const int32_t* blocks, c
 
 template <class T>
 __global__ void setup_kernel(const T* faces, const int32_t* count, const int32_t* nbr, const T* rho0, const T* dt,
-                             T* entries, T* phi_a, T* phi_b, int32_t* pushes, int64_t B, int64_t K, bool solve,
-                             double h, double omega, double stiffness, double pic) {
+                             T* entries, T* phi_a, T* phi_b, int32_t* pushes, int32_t* active, int64_t B, int64_t K,
+                             bool solve, double h, double omega, double stiffness, double pic) {
   const PressureConsts<T> q = pressure_consts<T>(h, *rho0, *dt, omega, stiffness, pic);
   for (int64_t g = int64_t(blockIdx.x) * blockDim.x + threadIdx.x; g < B * K * kBlockCells;
        g += int64_t(gridDim.x) * blockDim.x) {
@@ -120,9 +120,10 @@ __global__ void setup_kernel(const T* faces, const int32_t* count, const int32_t
     T* e = entries + kEntry * g;
     if (!cell_entry(faces + b * K * 3 * kBlockCells * 2, slot, int(g % kBlockCells), nbr + 6 * cell, q, e)) {
       for (int s = 0; s < kEntry; ++s) e[s] = T(0); // not active: the sweeps keep its phi at 0
-    } else if (e[0] > T(0)) {
-      pushes[b] = 1;
+      continue;
     }
+    atomicAdd(active + b, 1);
+    if (e[0] > T(0)) pushes[b] = 1;
   }
 }
 
@@ -202,15 +203,17 @@ cudaError_t p2g_cuda(const T* x, const T* v, const T* m, const T* frame, const T
 template <class T>
 cudaError_t pressure_cuda(const T* faces, const int32_t* table, const int32_t* blocks, const int32_t* count,
                           const T* rho0, const T* dt, T* phi_a, T* phi_b, T* field, T* entries, int32_t* nbr,
-                          int32_t* pushes, int64_t B, int64_t r, int64_t K, double h, int64_t iterations, double omega,
-                          double stiffness, double pic, cudaStream_t stream) {
+                          int32_t* pushes, int32_t* active, int64_t B, int64_t r, int64_t K, double h,
+                          int64_t iterations, double omega, double stiffness, double pic, cudaStream_t stream) {
   if (B == 0) return cudaSuccess;
   if (B > 0x7fffffffLL) return cudaErrorInvalidValue;
   cudaError_t err = cudaMemsetAsync(pushes, 0, sizeof(int32_t) * size_t(B), stream);
+  if (err == cudaSuccess) err = cudaMemsetAsync(active, 0, sizeof(int32_t) * size_t(B), stream);
   if (err != cudaSuccess) return err;
   neighbours_kernel<<<blocks_for(B * K), kThreads, 0, stream>>>(table, blocks, count, nbr, B, r, K);
   setup_kernel<T><<<blocks_for(B * K * kBlockCells), kThreads, 0, stream>>>(
-      faces, count, nbr, rho0, dt, entries, phi_a, phi_b, pushes, B, K, iterations > 0, h, omega, stiffness, pic);
+      faces, count, nbr, rho0, dt, entries, phi_a, phi_b, pushes, active, B, K, iterations > 0, h, omega, stiffness,
+      pic);
   if (iterations > 0)
     sweep_kernel<T><<<unsigned(B), kSweepThreads, 0, stream>>>(entries, nbr, count, pushes, phi_a, phi_b, K,
                                                               iterations, 1.0 - omega);
@@ -234,8 +237,8 @@ cudaError_t g2p_cuda(const T* x, const T* v, const T* field, const int32_t* tabl
   template cudaError_t p2g_cuda<T>(const T*, const T*, const T*, const T*, const T*, T*, int32_t*, int32_t*,       \
                                    int32_t*, uint8_t*, int64_t, int64_t, int64_t, int64_t, double, cudaStream_t);  \
   template cudaError_t pressure_cuda<T>(const T*, const int32_t*, const int32_t*, const int32_t*, const T*,        \
-                                        const T*, T*, T*, T*, T*, int32_t*, int32_t*, int64_t, int64_t, int64_t,   \
-                                        double, int64_t, double, double, double, cudaStream_t);                    \
+                                        const T*, T*, T*, T*, T*, int32_t*, int32_t*, int32_t*, int64_t, int64_t,  \
+                                        int64_t, double, int64_t, double, double, double, cudaStream_t);           \
   template cudaError_t g2p_cuda<T>(const T*, const T*, const T*, const int32_t*, const T*, const T*, const bool*,  \
                                    int64_t, const T*, T*, T*, int64_t, int64_t, int64_t, int64_t, double, double,  \
                                    cudaStream_t);

@@ -86,7 +86,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> p2g_cuda_op(const at:
   return {faces, table, blocks, count};
 }
 
-std::tuple<at::Tensor, at::Tensor> pressure_cuda_op(const at::Tensor& faces, const at::Tensor& table,
+std::tuple<at::Tensor, at::Tensor, at::Tensor> pressure_cuda_op(const at::Tensor& faces, const at::Tensor& table,
                                                     const at::Tensor& blocks, const at::Tensor& count,
                                                     const at::Tensor& target, const at::Tensor& dt, double cell_size,
                                                     int64_t resolution, int64_t iterations, double omega,
@@ -113,6 +113,7 @@ std::tuple<at::Tensor, at::Tensor> pressure_cuda_op(const at::Tensor& faces, con
   at::Tensor entries = at::empty({iterations > 0 ? B * K * kBlockCells * kEntry : 0}, faces.options());
   at::Tensor nbr = at::empty({B * K * 6}, faces.options().dtype(at::kInt));
   at::Tensor pushes = at::empty({B}, faces.options().dtype(at::kInt));
+  at::Tensor active = at::empty({B}, faces.options().dtype(at::kInt));
   const at::Tensor fc = faces.contiguous(), tc = table.contiguous(), bc = blocks.contiguous(), cc = count.contiguous();
   const cudaStream_t stream = c10::cuda::getCurrentCUDAStream(faces.device().index()).stream();
   cudaError_t err = cudaSuccess;
@@ -122,11 +123,12 @@ std::tuple<at::Tensor, at::Tensor> pressure_cuda_op(const at::Tensor& faces, con
                                   target.const_data_ptr<scalar_t>(), dt.const_data_ptr<scalar_t>(),
                                   phi_a.mutable_data_ptr<scalar_t>(), phi_b.mutable_data_ptr<scalar_t>(),
                                   field.mutable_data_ptr<scalar_t>(), entries.mutable_data_ptr<scalar_t>(),
-                                  nbr.mutable_data_ptr<int32_t>(), pushes.mutable_data_ptr<int32_t>(), B, r, K,
-                                  cell_size, iterations, omega, stiffness, pic, stream);
+                                  nbr.mutable_data_ptr<int32_t>(), pushes.mutable_data_ptr<int32_t>(),
+                                  active.mutable_data_ptr<int32_t>(), B, r, K, cell_size, iterations, omega, stiffness,
+                                  pic, stream);
   });
   check_launch("pressure", err);
-  return {iterations % 2 == 0 ? phi_a : phi_b, field};
+  return {iterations % 2 == 0 ? phi_a : phi_b, field, active};
 }
 
 std::tuple<at::Tensor, at::Tensor> g2p_cuda_op(const at::Tensor& x, const at::Tensor& v, const at::Tensor& field,
@@ -172,7 +174,8 @@ TORCH_LIBRARY(ams_torch_grid_cuda, m) {
   m.def("p2g(Tensor x, Tensor v, Tensor m, Tensor frame, Tensor origin, float cell_size, int resolution, "
         "int capacity) -> (Tensor, Tensor, Tensor, Tensor)");
   m.def("pressure(Tensor faces, Tensor table, Tensor blocks, Tensor count, Tensor target, Tensor dt, "
-        "float cell_size, int resolution, int iterations, float omega, float stiffness, float pic) -> (Tensor, Tensor)");
+        "float cell_size, int resolution, int iterations, float omega, float stiffness, float pic) -> (Tensor, Tensor, "
+        "Tensor)");
   m.def("g2p(Tensor x, Tensor v, Tensor field, Tensor table, Tensor frame, Tensor origin, Tensor free, Tensor dt, "
         "float cell_size, int resolution, float pic) -> (Tensor, Tensor)");
 }
