@@ -239,10 +239,13 @@ def check_state(state: State, config: Config, grid=None) -> None:
 
 def _raise_overflow(frame: int, grid) -> None:
     capacity = getattr(grid, "capacity", -1)
-    held = f"the {capacity} blocks of 4³ cells it holds" if capacity > 0 else "the blocks it holds"
-    whole = f" (the whole grid is {grid.blocks_per_axis ** 3} blocks)" if capacity > 0 else ""
-    raise GridOverflow(f"hair–hair grid overflow at frame {frame}: the hair occupied more than {held}, and from "
-                       f"that frame on the blocks beyond them were left out of the hair–hair stage. Give the grid "
-                       f"more room: HairHair(max_blocks=...){whole}, or a larger block_margin (the automatic "
-                       f"capacity is block_margin × the blocks the rest groom occupies).", frame=frame,
-                       capacity=capacity)
+    if capacity > 0:
+        whole = grid.blocks_per_axis ** 3
+        held = (f"the grid's static capacities (max_blocks: {capacity} blocks of 4³ cells, of {whole} in the whole "
+                f"grid; max_active_cells: {grid.active_capacity} cells that carry the pressure)")
+    else:
+        held = "the grid's static capacities (max_blocks, max_active_cells)"
+    raise GridOverflow(f"hair–hair grid overflow at frame {frame}: the hair needed more than {held}, and from that "
+                       f"frame on what did not fit was left out of the hair–hair stage. Give the grid more room: "
+                       f"HairHair(max_blocks=..., max_active_cells=...), or a larger block_margin (the automatic "
+                       f"capacities are block_margin × what the rest groom needs).", frame=frame, capacity=capacity)

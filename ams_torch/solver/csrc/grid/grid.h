@@ -193,9 +193,10 @@ AMS_GRID_HD void corner_faces(const ParticleStencil<T>& s, const PoolCorners& pc
   const __m256i b1 = _mm256_sub_epi32(_mm256_srli_epi32(q1, 2), _mm256_set1_epi32(int32_t(pc.first[1])));
   const __m256i b2 = _mm256_sub_epi32(_mm256_srli_epi32(q2, 2), _mm256_set1_epi32(int32_t(pc.first[2])));
   const __m256i cube = _mm256_add_epi32(_mm256_add_epi32(_mm256_slli_epi32(b0, 2), _mm256_slli_epi32(b1, 1)), b2);
-  const __m256i local = _mm256_add_epi32(
-      _mm256_add_epi32(_mm256_slli_epi32(_mm256_and_si256(q0, three), 4), _mm256_slli_epi32(_mm256_and_si256(q1, three), 2)),
-      _mm256_add_epi32(_mm256_and_si256(q2, three), _mm256_set1_epi32(C * kBlockCells)));
+  const __m256i l0 = _mm256_slli_epi32(_mm256_and_si256(q0, three), 4);
+  const __m256i l1 = _mm256_slli_epi32(_mm256_and_si256(q1, three), 2);
+  const __m256i local = _mm256_add_epi32(_mm256_add_epi32(l0, l1),
+                                         _mm256_add_epi32(_mm256_and_si256(q2, three), _mm256_set1_epi32(C * kBlockCells)));
   const __m256i blocks = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(pc.block));
   _mm256_storeu_si256(reinterpret_cast<__m256i*>(face),
                       _mm256_add_epi32(_mm256_permutevar8x32_epi32(blocks, cube), local));

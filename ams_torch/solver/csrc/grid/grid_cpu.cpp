@@ -12,13 +12,14 @@
 //     order whatever the number of threads. (Per-thread pools would cost a pool of zeroing and
 //     reduction per thread, atomics a varying order.)
 //   * pressure: per used slot (parallel) its neighbour slots, which of its 64 cells are active
-//     and their entries. The Jacobi sweeps visit only the active cells of "awake" slots: at first those with a pushing cell (src > 0), then
-//     every neighbour of a slot whose phi became non-zero. A slot that is not awake has src <= 0
-//     everywhere and zero phi in itself and its neighbours, where a sweep would give
-//     max(0, src) = 0: the values are exactly those of sweeping every cell (the torch path). A
-//     scene without a pushing cell never sweeps (phi stays exactly 0). Double-buffered, parallel
-//     over the awake slots.
-//   * field (per used slot) and G2P (per particle): independent, parallel.
+//     and their entries. The Jacobi sweeps visit only the active cells of "awake" slots: at
+//     first those with a pushing cell (src > 0), then every neighbour of a slot whose phi became
+//     non-zero. A slot that is not awake has src <= 0 everywhere and zero phi in itself and its
+//     neighbours, where a sweep would give max(0, src) = 0: the values are exactly those of
+//     sweeping every cell. A scene without a pushing cell never sweeps (phi stays exactly 0).
+//     Double-buffered, parallel over the awake slots. The active cells are counted per scene.
+//   * field (per used slot: pic u alone where phi cannot reach) and G2P (per batch of particles,
+//     grid_simd.h's lanes): independent, parallel.
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
@@ -236,8 +237,8 @@ void p2g_impl(const T* x, const T* v, const T* m, const T* frame, const T* origi
   at::parallel_for(0, B * batches, kParticleGrain / W, [&](int64_t t0, int64_t t1) {
     for (int64_t t = t0; t < t1; ++t) {
       const int64_t b = t / batches, first = (t % batches) * W;
-      p2g_mark(x + 3 * b * P, v + 3 * b * P, frame + 18 * b, origin, h, r, nb, first, int(std::min<int64_t>(W, P - first)),
-               head.data() + 6 * b * P, slab.data() + b * P, mark.data() + b * nb3);
+      p2g_mark(x + 3 * b * P, v + 3 * b * P, frame + 18 * b, origin, h, r, nb, first,
+               int(std::min<int64_t>(W, P - first)), head.data() + 6 * b * P, slab.data() + b * P, mark.data() + b * nb3);
     }
   });
   // per scene: slots in block order, zeroed faces of the used slots, particles sorted by slab

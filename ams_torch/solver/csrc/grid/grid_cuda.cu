@@ -8,10 +8,11 @@
 //        slots in any order), then one thread per particle, atomicAdd of mass and momentum into
 //        the pool (summation order, hence the last bits, vary between runs).
 //   pressure: the neighbour slots of every used slot; the entries of every used cell (active
-//        cells are counted per scene; one with src > 0 marks its scene as pushing); then ONE launch for all Jacobi sweeps: one
-//        thread block per scene loops over the cells of its used slots, __syncthreads() between
-//        sweeps (double-buffered phi, so the result does not depend on the order); a scene that
-//        does not push returns at once (phi stays 0). Then the face field of every used slot.
+//        cells are counted per scene; one with src > 0 marks its scene as pushing); then ONE
+//        launch for all Jacobi sweeps: one thread block per scene loops over the cells of its
+//        used slots, __syncthreads() between sweeps (double-buffered phi, so the result does not
+//        depend on the order); a scene that does not push returns at once (phi stays 0). Then the
+//        face field of every used slot.
 //   G2P: one thread per particle, fused with the FLIP/PIC blend and the frame changes.
 #include <cuda_runtime.h>
 
