@@ -37,7 +37,8 @@ from ams_torch.solver import build as _native
 from ams_torch.stages.hair_hair import HairHair, hair_hair_stage
 from ams_torch.stages.hair_hair.native import g2p_op, p2g_op, pressure_op
 from ams_torch.stages.hair_hair.pressure import pressure_torch
-from ams_torch.stages.hair_hair.sparse import blocks_per_axis, densify, g2p_sparse, p2g_sparse, pressure_sparse
+from ams_torch.stages.hair_hair.sparse import (active_cells, blocks_per_axis, densify, g2p_sparse, p2g_sparse,
+                                              pressure_sparse)
 from ams_torch.stages.hair_hair.transfer import cell_mass, face_views, g2p_torch, p2g_torch, scene_frame
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -174,8 +175,9 @@ def test_sparse_torch_path_equals_the_dense_definition(resolution):
     ref = dense_faces(s)
     assert rel(densify(faces, blocks, r), ref) <= 1e-14
     phi_d, field_d = pressure_torch(ref, grid.target_density, s["dt"], h, r, *_solve_args(grid))
-    phi_s, field_s, active = pressure_sparse(faces, table, blocks, grid.target_density, s["dt"], h, r,
-                                             *_solve_args(grid))
+    phi_s, field_s, over = pressure_sparse(faces, table, blocks, count, grid.target_density, s["dt"], h, r,
+                                           *_solve_args(grid), grid.active_capacity)
+    assert not bool(over.any())
     assert int((phi_d > 0).sum()) > 5
     assert rel(densify(phi_s, blocks, r), phi_d) <= 1e-14
     assert rel(densify(field_s, blocks, r), field_d) <= 1e-14
@@ -225,14 +227,15 @@ def test_pressure_parity_dense_squeeze(native, device, dtype):
     assert float(rho.max()) > 1.2 * float(grid.target_density)  # the squeeze is above the target
     phi_t, field_t = pressure_torch(ref, grid.target_density, s["dt"], h, r, *_solve_args(grid))
     phi_n, field_n, *_ = ns.pressure(faces, table, blocks, count, grid.target_density, s["dt"], h, r,
-                                     *_solve_args(grid))
+                                     *_solve_args(grid), grid.active_capacity)
     assert int((phi_t > 0).sum()) > 20  # pressure active in many cells, in both scenes
     assert bool((phi_t.flatten(1).amax(1) > 0).all())
     assert rel(densify(phi_n, blocks, r), phi_t) <= tol(dtype, r)
     assert rel(densify(field_n, blocks, r), field_t) <= tol(dtype, r)
     # an odd number of sweeps returns the other buffer
     phi_t3, _ = pressure_torch(ref, grid.target_density, s["dt"], h, r, 3, 0.6, 1.0, 0.05)
-    phi_n3, *_ = ns.pressure(faces, table, blocks, count, grid.target_density, s["dt"], h, r, 3, 0.6, 1.0, 0.05)
+    phi_n3, *_ = ns.pressure(faces, table, blocks, count, grid.target_density, s["dt"], h, r, 3, 0.6, 1.0, 0.05,
+                             grid.active_capacity)
     assert rel(densify(phi_n3, blocks, r), phi_t3) <= tol(dtype, r)
 
 
@@ -244,7 +247,8 @@ def test_g2p_parity(native, device, dtype):
     grid = s["grid"]
     h, r = grid.cell_size, grid.resolution
     faces, table, blocks, count = sparse_pool(s)
-    _, field, *_ = pressure_sparse(faces, table, blocks, grid.target_density, s["dt"], h, r, *_solve_args(grid))
+    _, field, *_ = pressure_sparse(faces, table, blocks, count, grid.target_density, s["dt"], h, r,
+                                   *_solve_args(grid))
     args = (s["xf"], s["vf"], field, table, s["frame"], grid.origin, s["free"], s["dt"], h, r, 0.05)
     x_t, v_t = g2p_sparse(*args)
     x_n, v_n = ns.g2p(*args)
@@ -278,8 +282,8 @@ def test_sweeps_visit_only_what_phi_can_reach_with_the_full_sweeps_values(native
     dt = torch.full((), DT, dtype=torch.float64)
     faces, table, blocks, count = p2g_sparse(xf, vf, m, frame, grid.origin, h, r, grid.capacity)
     args = (grid.target_density, dt, h, r, 50, 0.6, 1.0, 0.05)
-    phi_t, field_t, *_ = pressure_sparse(faces, table, blocks, *args)
-    phi_n, field_n, *_ = native.pressure(faces, table, blocks, count, *args)
+    phi_t, field_t, *_ = pressure_sparse(faces, table, blocks, count, *args)
+    phi_n, field_n, *_ = native.pressure(faces, table, blocks, count, *args, grid.active_capacity)
     used = blocks[0] >= 0
     assert torch.equal(phi_n[0, used] > 0, phi_t[0, used] > 0)
     assert rel(phi_n[0, used], phi_t[0, used]) <= 1e-13 and rel(field_n[0, used], field_t[0, used]) <= 1e-13
@@ -370,21 +374,26 @@ def test_capacity_overflow_is_flagged_never_silent(native, device, backend):
 def test_active_cell_capacity(native, device):
     """The torch path sweeps a list of the active cells (a static capacity, so its cost is not the
     pool's): with room for exactly the active cells it gives the values of sweeping every cell;
-    one short, both paths flag the overflow. The kernels count the same active cells."""
+    one short, both paths flag the overflow (the kernels count the same active cells)."""
     ns = _namespace(device)
     s = squeeze_scene(torch.float64, device)
     grid = s["grid"]
     h, r = grid.cell_size, grid.resolution
     faces, table, blocks, count = sparse_pool(s)
     args = (grid.target_density, s["dt"], h, r, *_solve_args(grid))
-    phi_all, field_all, active = pressure_sparse(faces, table, blocks, *args)
-    phi_n, field_n, active_n = ns.pressure(faces, table, blocks, count, *args)
-    assert torch.equal(active_n, active) and int(active.min()) > 20
+    active = active_cells(faces, table, blocks, grid.target_density, h, r)
     need = int(active.max())
-    phi_fit, field_fit, _ = pressure_sparse(faces, table, blocks, *args, need)
+    assert int(active.min()) > 20
+    phi_all, field_all, over = pressure_sparse(faces, table, blocks, count, *args)
+    phi_fit, field_fit, over_fit = pressure_sparse(faces, table, blocks, count, *args, need)
     assert torch.equal(phi_fit, phi_all) and torch.equal(field_fit, field_all)
-    phi_short, *_ = pressure_sparse(faces, table, blocks, *args, need // 2)
+    assert not bool(over.any()) and not bool(over_fit.any())
+    phi_short, *_ = pressure_sparse(faces, table, blocks, count, *args, need // 2)
     assert not torch.equal(phi_short, phi_all)  # cells were left out
+    for cap in (need, need - 1):
+        expect = active > cap
+        assert torch.equal(pressure_sparse(faces, table, blocks, count, *args, cap)[2].cpu(), expect.cpu())
+        assert torch.equal(ns.pressure(faces, table, blocks, count, *args, cap)[2].cpu(), expect.cpu())
     for backend in ("torch", "native"):
         tight = HairHair(resolution=24, max_active_cells=need - 1).build(head_groom(200, 10, dtype=torch.float64),
                                                                          MASS).to(device)
@@ -428,7 +437,7 @@ def test_no_cell_above_target_gives_exactly_zero_phi(native, device, dtype):
     assert 0.5 * float(grid.target_density) < float(rho.max()) < float(grid.target_density)
     phi_t, field_t = pressure_torch(ref, grid.target_density, s["dt"], h, r, *_solve_args(grid))
     phi_n, field_n, *_ = ns.pressure(faces, table, blocks, count, grid.target_density, s["dt"], h, r,
-                                     *_solve_args(grid))
+                                     *_solve_args(grid), grid.active_capacity)
     phi_n, field_n = densify(phi_n, blocks, r), densify(field_n, blocks, r)
     assert bool((phi_t == 0).all()) and bool((phi_n == 0).all())
     vel = torch.where(ref[..., 0] > 0, ref[..., 1] / ref[..., 0].clamp_min(1e-300), torch.zeros_like(ref[..., 0]))
@@ -446,7 +455,8 @@ def test_empty_grid(native, device):
     h, r = grid.cell_size, grid.resolution
     faces, table, blocks, count = ns.p2g(xf, s["vf"], s["m"], s["frame"], grid.origin, h, r, grid.capacity)
     assert bool((count == 0).all()) and bool((table == -1).all()) and bool((blocks == -1).all())
-    phi, field, *_ = ns.pressure(faces, table, blocks, count, grid.target_density, s["dt"], h, r, *_solve_args(grid))
+    phi, field, *_ = ns.pressure(faces, table, blocks, count, grid.target_density, s["dt"], h, r, *_solve_args(grid),
+                                 grid.active_capacity)
     x1, v1 = ns.g2p(xf, s["vf"], field, table, s["frame"], grid.origin, s["free"], s["dt"], h, r, 0.05)
     assert torch.equal(x1, xf) and torch.equal(v1, s["vf"])
     for backend in ("torch", "native"):
@@ -466,8 +476,8 @@ def test_native_results_do_not_depend_on_the_thread_count(native):
             torch.set_num_threads(threads)
             faces, table, blocks, count = native.p2g(*args)
             used = int(count[0])
-            phi, field, *_ = native.pressure(faces, table, blocks, count, grid.target_density, s["dt"], grid.cell_size,
-                                         grid.resolution, *_solve_args(grid))
+            phi, field, _ = native.pressure(faces, table, blocks, count, grid.target_density, s["dt"], grid.cell_size,
+                                            grid.resolution, *_solve_args(grid), grid.active_capacity)
             outs.append((faces[:, :used], table, phi[:, :used], field[:, :used]))
     finally:
         torch.set_num_threads(before)

@@ -186,13 +186,13 @@ def step(model: Model, state: State, control: Control, config: Config, timer=Non
             x, v = native_frame_dynamics(*args)
         else:  # nothing runs after the dynamics: the frame's end is fused into its kernel
             x, v, speed = native_frame_dynamics(*args, finish=pose1, pinned=model.pinned)
-    overflow_frame = state.overflow_frame
+    overflow_frame, next_frame = state.overflow_frame, state.frame + 1
     if config.hair_hair:
         with stage("hair_hair"):
             x, v, overflow = hair_hair_stage(model.hair_hair, x, v, coeffs.mass, pose1, dt, ~model.pinned,
                                              backend="auto" if native else "torch", with_overflow=True)
         before = overflow_frame if overflow_frame is not None else torch.full_like(state.frame, -1)
-        overflow_frame = torch.where((before < 0) & overflow, state.frame + 1, before)
+        overflow_frame = torch.where(overflow & (before < 0), next_frame, before)
     if config.colliders:
         with stage("collisions"):
             x, v = collisions(model, config, x, v, pose1, control.collider_poses, native)
@@ -201,7 +201,7 @@ def step(model: Model, state: State, control: Control, config: Config, timer=Non
     if config.nonhookean:
         ghost_rest = plastic_update(model, coeffs, x, ghost_rest, state.sag_offset, pose1)
     return State(x=x, v=v, ghost_rest=ghost_rest, sag_offset=state.sag_offset, pose=pose1, time=time + dt,
-                 frame=state.frame + 1, diverged_frame=diverged_frame, diverged_input=diverged_input,
+                 frame=next_frame, diverged_frame=diverged_frame, diverged_input=diverged_input,
                  overflow_frame=overflow_frame)
 
 
@@ -211,10 +211,8 @@ def check_state(state: State, config: Config, grid=None) -> None:
     ``config.max_relative_speed`` relative to the head, if the state's flag is set; or
     :class:`GridOverflow` if the hair–hair grid overflowed first (``grid``: the model's
     :class:`~ams_torch.stages.hair_hair.HairHairGrid`, for the message)."""
-    if state.overflow_frame is None:
-        frame, overflow = int(state.diverged_frame), -1
-    else:
-        frame, overflow = torch.stack((state.diverged_frame, state.overflow_frame)).tolist()
+    frame = int(state.diverged_frame)
+    overflow = -1 if state.overflow_frame is None else int(state.overflow_frame)  # on a GPU: synced already
     if overflow >= 0 and (frame < 0 or overflow <= frame):
         _raise_overflow(overflow, grid)
     if frame < 0:

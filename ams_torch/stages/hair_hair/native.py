@@ -24,8 +24,8 @@ at or beyond ``min(count, K)`` are left unwritten):
   (summation order, hence the last bits, vary between runs).
 * **Pressure**: per used slot, the entries of its 64 cells (zero for cells that cannot carry φ);
   the active cells are counted per scene (the torch path sweeps a list of them with a static
-  capacity, ``HairHairGrid.active_capacity``; the kernels need no list, and report the count so
-  that both paths flag the same overflow).
+  capacity, ``HairHairGrid.active_capacity``; the kernels need no list, but flag the same
+  overflow: the op's third output, per scene, is blocks > K or active cells > that capacity).
   Scenes where no cell has b > 0 skip the sweeps (φ stays exactly 0, as on the torch path):
   decided on the device, no host sync. CPU: the sweeps visit only the slots φ can have reached
   (those with a pushing cell, then the neighbours of slots where φ became non-zero), with the
@@ -103,8 +103,8 @@ def pressure_op(faces: torch.Tensor, table: torch.Tensor, blocks: torch.Tensor, 
                 require_native: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """faces: (B, K, 3, 64, 2); table, blocks, count from P2G; target_density, dt: () tensors;
     active_capacity: active cells per scene the torch sweeps hold. Returns phi (B, K, 64), field
-    (B, K, 3, 64) and active (B,) int32 (0 without sweeps)."""
-    return pressure_sparse(faces, table, blocks, target_density, dt, cell_size, resolution, iterations, omega,
+    (B, K, 3, 64) and overflow (B,) bool (see :func:`~.sparse.pressure_sparse`)."""
+    return pressure_sparse(faces, table, blocks, count, target_density, dt, cell_size, resolution, iterations, omega,
                            stiffness, pic, active_capacity)
 
 
@@ -112,10 +112,10 @@ def _pressure_kernel(faces, table, blocks, count, target_density, dt, cell_size,
                      stiffness, pic, active_capacity, require_native):
     ns = _namespace(faces, require_native, "pressure")
     if ns is None:
-        return pressure_sparse(faces, table, blocks, target_density, dt, cell_size, resolution, iterations, omega,
-                               stiffness, pic, active_capacity)
+        return pressure_sparse(faces, table, blocks, count, target_density, dt, cell_size, resolution, iterations,
+                               omega, stiffness, pic, active_capacity)
     return tuple(ns.pressure(faces, table, blocks, count, target_density, dt, cell_size, resolution, iterations,
-                             omega, stiffness, pic))
+                             omega, stiffness, pic, active_capacity))
 
 
 pressure_op.register_kernel("cpu")(_pressure_kernel)
@@ -127,7 +127,7 @@ def _pressure_fake(faces, table, blocks, count, target_density, dt, cell_size, r
                    stiffness, pic, active_capacity, require_native):
     b, k = faces.shape[:2]
     return (faces.new_empty(b, k, BLOCK_CELLS), faces.new_empty(b, k, 3, BLOCK_CELLS),
-            torch.empty(b, dtype=torch.int32, device=faces.device))
+            torch.empty(b, dtype=torch.bool, device=faces.device))
 
 
 # -- G2P ---------------------------------------------------------------------------------------

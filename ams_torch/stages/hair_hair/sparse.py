@@ -323,18 +323,19 @@ def _solve(faces, nbr, active, rho0, dt, h: float, cap: int, iterations: int, om
     return phi[:-1], g, near_g
 
 
-def pressure_sparse(faces: torch.Tensor, table: torch.Tensor, blocks: torch.Tensor, target_density: torch.Tensor,
-                    dt, cell_size: float, resolution: int, iterations: int, omega: float, stiffness: float,
-                    pic: float, active_capacity: Optional[int] = None):
+def pressure_sparse(faces: torch.Tensor, table: torch.Tensor, blocks: torch.Tensor, count: torch.Tensor,
+                    target_density: torch.Tensor, dt, cell_size: float, resolution: int, iterations: int, omega: float,
+                    stiffness: float, pic: float, active_capacity: Optional[int] = None):
     """The pressure solve and the face field on the pool (definition of the native ``pressure``):
     :func:`~.pressure.pressure_torch` cell by cell and face by face, in its order of operations.
 
-    faces: (B, K, 3, 64, 2) from :func:`p2g_sparse`; table (B, nb³), blocks (B, K) int32;
-    target_density () kg/m³; dt s; the rest as ``pressure_torch``; active_capacity: the active
-    cells per scene the sweeps hold (a static capacity, default every pool cell: the sweeps and
-    the cell terms cost this, not the pool; see :func:`_solve`). Returns phi (B, K, 64)
-    kg/(m·s), field (B, K, 3, 64) m/s and active (B,) int32: each scene's active cells (0 without
-    sweeps); ``active > active_capacity`` is an overflow (the cells beyond it kept φ = 0).
+    faces: (B, K, 3, 64, 2) from :func:`p2g_sparse`; table (B, nb³), blocks (B, K), count (B,)
+    int32; target_density () kg/m³; dt s; the rest as ``pressure_torch``; active_capacity: the
+    active cells per scene the sweeps hold (a static capacity, default every pool cell: the
+    sweeps and the cell terms cost this, not the pool; see :func:`_solve`). Returns phi
+    (B, K, 64) kg/(m·s), field (B, K, 3, 64) m/s and overflow (B,) bool: the scene's hair
+    occupied more than K blocks (``count > K``: P2G left blocks out) or, with sweeps, had more
+    active cells than ``active_capacity`` (the cells beyond it kept φ = 0).
     """
     h = cell_size
     h3 = h * h * h
@@ -350,8 +351,9 @@ def pressure_sparse(faces: torch.Tensor, table: torch.Tensor, blocks: torch.Tens
         mass, mom = faces[:, :, c, :, 0], faces[:, :, c, :, 1]
         field.append(pic * _velocity(mass, mom))
     field = torch.stack(field, 2)  # (B, K, 3, 64)
+    blocks_over = count > k
     if iterations == 0:
-        return faces.new_zeros(b, k, BLOCK_CELLS), field, torch.zeros(b, dtype=torch.int32, device=faces.device)
+        return faces.new_zeros(b, k, BLOCK_CELLS), field, blocks_over
     active = _active(faces, nbr, eps)
     phi, g, near_g = _solve(faces, nbr, active, rho0, dt, h, cap, iterations, omega, stiffness)
     none = b * k * BLOCK_CELLS
@@ -373,7 +375,7 @@ def pressure_sparse(faces: torch.Tensor, table: torch.Tensor, blocks: torch.Tens
             value = pic * _velocity(mm[:, 0], mm[:, 1]) + du
             out[c].index_put_((torch.where(use, face, none),), value)
     field = out[:, :-1].reshape(3, b, k, BLOCK_CELLS).permute(1, 2, 0, 3)
-    return phi.reshape(b, k, BLOCK_CELLS), field, active.reshape(b, -1).sum(1).to(torch.int32)
+    return phi.reshape(b, k, BLOCK_CELLS), field, blocks_over | (active.reshape(b, -1).sum(1) > cap)
 
 
 def g2p_sparse(x: torch.Tensor, v: torch.Tensor, field: torch.Tensor, table: torch.Tensor, frame: torch.Tensor,

@@ -137,18 +137,19 @@ def hair_hair_stage(grid: Optional[HairHairGrid], x: torch.Tensor, v: torch.Tens
         strict = backend == "native"
         xc, vc, frame, origin = xf.contiguous(), vf.contiguous(), frame.contiguous(), origin.contiguous()
         faces, table, blocks, count = p2g(xc, vc, m.contiguous(), frame, origin, h, r, k, strict)
-        _, field, active = pressure(faces, table, blocks, count, target, dtt, h, r, *solve, grid.active_capacity,
-                                    strict)
+        _, field, overflow = pressure(faces, table, blocks, count, target, dtt, h, r, *solve, grid.active_capacity,
+                                      strict)
         x1, v1 = g2p(xc, vc, field, table, frame, origin, free, dtt, h, r, pic, strict)
     else:
         stencils: list = []
         faces, table, blocks, count = p2g_sparse(xf, vf, m, frame, origin, h, r, k, stencils)
-        _, field, active = pressure_sparse(faces, table, blocks, target, dtt, h, r, *solve, grid.active_capacity)
+        _, field, overflow = pressure_sparse(faces, table, blocks, count, target, dtt, h, r, *solve,
+                                             grid.active_capacity)
         x1, v1 = g2p_sparse(xf, vf, field, table, frame, origin, free, dtt, h, r, pic, stencils)
     if cfg.detailed_collisions:
         x1, v1 = _after_detailed_collisions(grid, xf, x1, v1, m, frame, free)
     out = x1.reshape(x.shape), v1.reshape(v.shape)
-    return out + (((count > k) | (active > grid.active_capacity)).any(),) if with_overflow else out
+    return out + (overflow.any(),) if with_overflow else out
 
 
 def _after_detailed_collisions(grid, x, x1, v1, m, frame, free):

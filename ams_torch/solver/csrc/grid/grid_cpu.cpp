@@ -17,7 +17,8 @@
 //     non-zero. A slot that is not awake has src <= 0 everywhere and zero phi in itself and its
 //     neighbours, where a sweep would give max(0, src) = 0: the values are exactly those of
 //     sweeping every cell. A scene without a pushing cell never sweeps (phi stays exactly 0).
-//     Double-buffered, parallel over the awake slots. The active cells are counted per scene.
+//     Double-buffered, parallel over the awake slots. The active cells are counted per scene, to
+//     flag the overflow of the torch path's active-cell list as that path does.
 //   * field (per used slot: pic u alone where phi cannot reach) and G2P (per batch of particles,
 //     grid_simd.h's lanes): independent, parallel.
 #include <ATen/Dispatch.h>
@@ -317,8 +318,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> p2g_cpu(const at::Ten
 
 template <class T>
 void pressure_impl(const T* faces, const int32_t* table, const int32_t* blocks, const int32_t* count, T rho0, T dt,
-                   T* phi_a, T* phi_b, T* field, int32_t* active_count, int64_t B, int64_t r, int64_t K,
-                   double cell_size, int64_t iterations, double omega, double stiffness, double pic) {
+                   T* phi_a, T* phi_b, T* field, bool* overflow, int64_t B, int64_t r, int64_t K,
+                   double cell_size, int64_t iterations, double omega, double stiffness, double pic,
+                   int64_t active_capacity) {
   const PressureConsts<T> q = pressure_consts<T>(cell_size, rho0, dt, omega, stiffness, pic);
   const int64_t nb = blocks_per_axis(r), nb3 = nb * nb * nb;
   const int64_t pool = K * 3 * kBlockCells; // faces of one scene
@@ -326,7 +328,7 @@ void pressure_impl(const T* faces, const int32_t* table, const int32_t* blocks, 
   std::vector<int64_t> first(size_t(B + 1), 0);
   for (int64_t b = 0; b < B; ++b) first[b + 1] = first[b] + std::min<int64_t>(std::max(count[b], 0), K);
   const int64_t U = first[B];
-  std::fill(active_count, active_count + B, 0);
+  for (int64_t b = 0; b < B; ++b) overflow[b] = count[b] > K; // the blocks P2G left out
   if (U == 0) return;
   std::vector<int32_t> scene(static_cast<size_t>(U));
   for (int64_t b = 0; b < B; ++b) std::fill(scene.begin() + first[b], scene.begin() + first[b + 1], int32_t(b));
@@ -358,7 +360,9 @@ void pressure_impl(const T* faces, const int32_t* table, const int32_t* blocks, 
     }
   });
   if (iterations > 0) {
-    for (int64_t u = 0; u < U; ++u) active_count[scene[u]] += int32_t(popcount(active[u]));
+    std::vector<int64_t> listed(static_cast<size_t>(B), 0); // active cells: the torch path lists them
+    for (int64_t u = 0; u < U; ++u) listed[scene[u]] += popcount(active[u]);
+    for (int64_t b = 0; b < B; ++b) overflow[b] = overflow[b] || listed[b] > active_capacity;
     std::vector<int64_t> list;
     for (int64_t u = 0; u < U; ++u)
       if (awake[u]) list.push_back(u);
@@ -422,10 +426,11 @@ void pressure_impl(const T* faces, const int32_t* table, const int32_t* blocks, 
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> pressure_cpu(const at::Tensor& faces, const at::Tensor& table,
-                                                const at::Tensor& blocks, const at::Tensor& count,
-                                                const at::Tensor& target, const at::Tensor& dt, double cell_size,
-                                                int64_t resolution, int64_t iterations, double omega,
-                                                double stiffness, double pic) {
+                                                            const at::Tensor& blocks, const at::Tensor& count,
+                                                            const at::Tensor& target, const at::Tensor& dt,
+                                                            double cell_size, int64_t resolution, int64_t iterations,
+                                                            double omega, double stiffness, double pic,
+                                                            int64_t active_capacity) {
   const int64_t r = resolution;
   TORCH_CHECK(r >= 2 && cell_size > 0, "ams_torch_grid_cpu::pressure: need resolution >= 2 and cell_size > 0");
   TORCH_CHECK(faces.dim() == 5 && faces.size(2) == 3 && faces.size(3) == kBlockCells && faces.size(4) == 2,
@@ -444,17 +449,17 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pressure_cpu(const at::Tensor& fa
   at::Tensor phi_a = at::empty({B, K, kBlockCells}, faces.options());
   at::Tensor phi_b = at::empty({B, K, kBlockCells}, faces.options());
   at::Tensor field = at::empty({B, K, 3, kBlockCells}, faces.options());
-  at::Tensor active = at::empty({B}, faces.options().dtype(at::kInt));
-  if (B == 0) return {phi_a, field, active};
+  at::Tensor overflow = at::empty({B}, faces.options().dtype(at::kBool));
+  if (B == 0) return {phi_a, field, overflow};
   const at::Tensor fc = faces.contiguous(), tc = table.contiguous(), bc = blocks.contiguous(), cc = count.contiguous();
   AT_DISPATCH_FLOATING_TYPES(dtype, "ams_torch_grid_cpu::pressure", [&] {
     pressure_impl<scalar_t>(fc.const_data_ptr<scalar_t>(), tc.const_data_ptr<int32_t>(), bc.const_data_ptr<int32_t>(),
                             cc.const_data_ptr<int32_t>(), target.item<scalar_t>(), dt.item<scalar_t>(),
                             phi_a.mutable_data_ptr<scalar_t>(), phi_b.mutable_data_ptr<scalar_t>(),
-                            field.mutable_data_ptr<scalar_t>(), active.mutable_data_ptr<int32_t>(), B, r, K, cell_size,
-                            iterations, omega, stiffness, pic);
+                            field.mutable_data_ptr<scalar_t>(), overflow.mutable_data_ptr<bool>(), B, r, K, cell_size,
+                            iterations, omega, stiffness, pic, active_capacity);
   });
-  return {iterations % 2 == 0 ? phi_a : phi_b, field, active};
+  return {iterations % 2 == 0 ? phi_a : phi_b, field, overflow};
 }
 
 // G2P of particles [q0, q0 + n) of one scene (x, v, xo, vo, free_p: that scene's).
@@ -555,8 +560,8 @@ TORCH_LIBRARY(ams_torch_grid_cpu, m) {
   m.def("p2g(Tensor x, Tensor v, Tensor m, Tensor frame, Tensor origin, float cell_size, int resolution, "
         "int capacity) -> (Tensor, Tensor, Tensor, Tensor)");
   m.def("pressure(Tensor faces, Tensor table, Tensor blocks, Tensor count, Tensor target, Tensor dt, "
-        "float cell_size, int resolution, int iterations, float omega, float stiffness, float pic) -> (Tensor, Tensor, "
-        "Tensor)");
+        "float cell_size, int resolution, int iterations, float omega, float stiffness, float pic, int active_capacity) "
+        "-> (Tensor, Tensor, Tensor)");
   m.def("g2p(Tensor x, Tensor v, Tensor field, Tensor table, Tensor frame, Tensor origin, Tensor free, Tensor dt, "
         "float cell_size, int resolution, float pic) -> (Tensor, Tensor)");
 }

@@ -152,6 +152,14 @@ __global__ void __launch_bounds__(kSweepThreads) sweep_kernel(const T* entries, 
   }
 }
 
+// overflow[b]: the scene's hair occupied more than K blocks, or (with sweeps) had more active
+// cells than the torch path's list holds.
+__global__ void overflow_kernel(const int32_t* count, const int32_t* active, bool* overflow, int64_t B, int64_t K,
+                                int64_t active_capacity) {
+  for (int64_t b = int64_t(blockIdx.x) * blockDim.x + threadIdx.x; b < B; b += int64_t(gridDim.x) * blockDim.x)
+    overflow[b] = count[b] > K || active[b] > active_capacity;
+}
+
 template <class T>
 __global__ void field_kernel(const T* faces, const T* phi, const int32_t* count, const int32_t* nbr, const T* rho0,
                              const T* dt, T* field, int64_t B, int64_t K, double h, double omega, double stiffness,
@@ -203,9 +211,10 @@ cudaError_t p2g_cuda(const T* x, const T* v, const T* m, const T* frame, const T
 
 template <class T>
 cudaError_t pressure_cuda(const T* faces, const int32_t* table, const int32_t* blocks, const int32_t* count,
-                          const T* rho0, const T* dt, T* phi_a, T* phi_b, T* field, T* entries, int32_t* nbr,
-                          int32_t* pushes, int32_t* active, int64_t B, int64_t r, int64_t K, double h,
-                          int64_t iterations, double omega, double stiffness, double pic, cudaStream_t stream) {
+                          const T* rho0, const T* dt, T* phi_a, T* phi_b, T* field, bool* overflow, T* entries,
+                          int32_t* nbr, int32_t* pushes, int32_t* active, int64_t B, int64_t r, int64_t K, double h,
+                          int64_t iterations, double omega, double stiffness, double pic, int64_t active_capacity,
+                          cudaStream_t stream) {
   if (B == 0) return cudaSuccess;
   if (B > 0x7fffffffLL) return cudaErrorInvalidValue;
   cudaError_t err = cudaMemsetAsync(pushes, 0, sizeof(int32_t) * size_t(B), stream);
@@ -218,6 +227,7 @@ cudaError_t pressure_cuda(const T* faces, const int32_t* table, const int32_t* b
   if (iterations > 0)
     sweep_kernel<T><<<unsigned(B), kSweepThreads, 0, stream>>>(entries, nbr, count, pushes, phi_a, phi_b, K,
                                                               iterations, 1.0 - omega);
+  overflow_kernel<<<blocks_for(B), kThreads, 0, stream>>>(count, active, overflow, B, K, active_capacity);
   const T* phi = iterations % 2 == 0 ? phi_a : phi_b;
   field_kernel<T><<<blocks_for(B * K * 3 * kBlockCells), kThreads, 0, stream>>>(faces, phi, count, nbr, rho0, dt,
                                                                                  field, B, K, h, omega, stiffness, pic);
@@ -238,8 +248,9 @@ cudaError_t g2p_cuda(const T* x, const T* v, const T* field, const int32_t* tabl
   template cudaError_t p2g_cuda<T>(const T*, const T*, const T*, const T*, const T*, T*, int32_t*, int32_t*,       \
                                    int32_t*, uint8_t*, int64_t, int64_t, int64_t, int64_t, double, cudaStream_t);  \
   template cudaError_t pressure_cuda<T>(const T*, const int32_t*, const int32_t*, const int32_t*, const T*,        \
-                                        const T*, T*, T*, T*, T*, int32_t*, int32_t*, int32_t*, int64_t, int64_t,  \
-                                        int64_t, double, int64_t, double, double, double, cudaStream_t);           \
+                                        const T*, T*, T*, T*, bool*, T*, int32_t*, int32_t*, int32_t*, int64_t,    \
+                                        int64_t, int64_t, double, int64_t, double, double, double, int64_t,        \
+                                        cudaStream_t);                                                             \
   template cudaError_t g2p_cuda<T>(const T*, const T*, const T*, const int32_t*, const T*, const T*, const bool*,  \
                                    int64_t, const T*, T*, T*, int64_t, int64_t, int64_t, int64_t, double, double,  \
                                    cudaStream_t);

@@ -25,13 +25,15 @@ cudaError_t p2g_cuda(const T* x, const T* v, const T* m, const T* frame, const T
 // phi (B, K, 64) and field (B, K, 3, 64) from the pool of P2G; rho0 and dt are device scalars.
 // Workspace (any content): entries B K 64 8 values of T, nbr B K 6 int32, pushes B int32. phi_a
 // and phi_b (B K 64 each) are zeroed here on the used slots; the result is in phi_a when
-// `iterations` is even, else in phi_b. Slots a scene does not use are left unwritten. active (B,)
-// int32: the active cells of each scene (0 when `iterations` is 0).
+// `iterations` is even, else in phi_b. Slots a scene does not use are left unwritten. overflow
+// (B,): count > K, or (with sweeps) more active cells than active_capacity; workspace active (B,)
+// int32 counts them.
 template <class T>
 cudaError_t pressure_cuda(const T* faces, const int32_t* table, const int32_t* blocks, const int32_t* count,
-                          const T* rho0, const T* dt, T* phi_a, T* phi_b, T* field, T* entries, int32_t* nbr,
-                          int32_t* pushes, int32_t* active, int64_t B, int64_t r, int64_t K, double h,
-                          int64_t iterations, double omega, double stiffness, double pic, cudaStream_t stream);
+                          const T* rho0, const T* dt, T* phi_a, T* phi_b, T* field, bool* overflow, T* entries,
+                          int32_t* nbr, int32_t* pushes, int32_t* active, int64_t B, int64_t r, int64_t K, double h,
+                          int64_t iterations, double omega, double stiffness, double pic, int64_t active_capacity,
+                          cudaStream_t stream);
 
 // x', v' (B, P, 3) by G2P of field (B, K, 3, 64) through table (B, nb^3); free (N,) bool
 // (particle p free when free[p % N]).
@@ -45,9 +47,9 @@ cudaError_t g2p_cuda(const T* x, const T* v, const T* field, const int32_t* tabl
                                           int32_t*, int32_t*, uint8_t*, int64_t, int64_t, int64_t, int64_t,        \
                                           double, cudaStream_t);                                                   \
   extern template cudaError_t pressure_cuda<T>(const T*, const int32_t*, const int32_t*, const int32_t*,          \
-                                               const T*, const T*, T*, T*, T*, T*, int32_t*, int32_t*, int32_t*,   \
-                                               int64_t, int64_t, int64_t, double, int64_t, double, double, double, \
-                                               cudaStream_t);                                                      \
+                                               const T*, const T*, T*, T*, T*, bool*, T*, int32_t*, int32_t*,      \
+                                               int32_t*, int64_t, int64_t, int64_t, double, int64_t, double,       \
+                                               double, double, int64_t, cudaStream_t);                             \
   extern template cudaError_t g2p_cuda<T>(const T*, const T*, const T*, const int32_t*, const T*, const T*,       \
                                           const bool*, int64_t, const T*, T*, T*, int64_t, int64_t, int64_t,       \
                                           int64_t, double, double, cudaStream_t);

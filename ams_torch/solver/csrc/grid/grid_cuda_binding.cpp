@@ -87,10 +87,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> p2g_cuda_op(const at:
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> pressure_cuda_op(const at::Tensor& faces, const at::Tensor& table,
-                                                    const at::Tensor& blocks, const at::Tensor& count,
-                                                    const at::Tensor& target, const at::Tensor& dt, double cell_size,
-                                                    int64_t resolution, int64_t iterations, double omega,
-                                                    double stiffness, double pic) {
+                                                                const at::Tensor& blocks, const at::Tensor& count,
+                                                                const at::Tensor& target, const at::Tensor& dt,
+                                                                double cell_size, int64_t resolution,
+                                                                int64_t iterations, double omega, double stiffness,
+                                                                double pic, int64_t active_capacity) {
   const int64_t r = resolution;
   TORCH_CHECK(faces.is_cuda(), "ams_torch_grid_cuda::pressure: faces must be a CUDA tensor");
   TORCH_CHECK(r >= 2 && cell_size > 0, "ams_torch_grid_cuda::pressure: need resolution >= 2 and cell_size > 0");
@@ -114,6 +115,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pressure_cuda_op(const at::Tensor
   at::Tensor nbr = at::empty({B * K * 6}, faces.options().dtype(at::kInt));
   at::Tensor pushes = at::empty({B}, faces.options().dtype(at::kInt));
   at::Tensor active = at::empty({B}, faces.options().dtype(at::kInt));
+  at::Tensor overflow = at::empty({B}, faces.options().dtype(at::kBool));
   const at::Tensor fc = faces.contiguous(), tc = table.contiguous(), bc = blocks.contiguous(), cc = count.contiguous();
   const cudaStream_t stream = c10::cuda::getCurrentCUDAStream(faces.device().index()).stream();
   cudaError_t err = cudaSuccess;
@@ -122,13 +124,14 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pressure_cuda_op(const at::Tensor
                                   bc.const_data_ptr<int32_t>(), cc.const_data_ptr<int32_t>(),
                                   target.const_data_ptr<scalar_t>(), dt.const_data_ptr<scalar_t>(),
                                   phi_a.mutable_data_ptr<scalar_t>(), phi_b.mutable_data_ptr<scalar_t>(),
-                                  field.mutable_data_ptr<scalar_t>(), entries.mutable_data_ptr<scalar_t>(),
+                                  field.mutable_data_ptr<scalar_t>(), overflow.mutable_data_ptr<bool>(),
+                                  entries.mutable_data_ptr<scalar_t>(),
                                   nbr.mutable_data_ptr<int32_t>(), pushes.mutable_data_ptr<int32_t>(),
                                   active.mutable_data_ptr<int32_t>(), B, r, K, cell_size, iterations, omega, stiffness,
-                                  pic, stream);
+                                  pic, active_capacity, stream);
   });
   check_launch("pressure", err);
-  return {iterations % 2 == 0 ? phi_a : phi_b, field, active};
+  return {iterations % 2 == 0 ? phi_a : phi_b, field, overflow};
 }
 
 std::tuple<at::Tensor, at::Tensor> g2p_cuda_op(const at::Tensor& x, const at::Tensor& v, const at::Tensor& field,
@@ -174,8 +177,8 @@ TORCH_LIBRARY(ams_torch_grid_cuda, m) {
   m.def("p2g(Tensor x, Tensor v, Tensor m, Tensor frame, Tensor origin, float cell_size, int resolution, "
         "int capacity) -> (Tensor, Tensor, Tensor, Tensor)");
   m.def("pressure(Tensor faces, Tensor table, Tensor blocks, Tensor count, Tensor target, Tensor dt, "
-        "float cell_size, int resolution, int iterations, float omega, float stiffness, float pic) -> (Tensor, Tensor, "
-        "Tensor)");
+        "float cell_size, int resolution, int iterations, float omega, float stiffness, float pic, int active_capacity) "
+        "-> (Tensor, Tensor, Tensor)");
   m.def("g2p(Tensor x, Tensor v, Tensor field, Tensor table, Tensor frame, Tensor origin, Tensor free, Tensor dt, "
         "float cell_size, int resolution, float pic) -> (Tensor, Tensor)");
 }
