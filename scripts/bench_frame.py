@@ -123,7 +123,9 @@ def frame(case: dict, path: str, device, timer=None) -> float:
 VIEWS = {"aten::reshape", "aten::view", "aten::expand", "aten::expand_as", "aten::unsqueeze", "aten::squeeze",
          "aten::select", "aten::slice", "aten::permute", "aten::transpose", "aten::t", "aten::as_strided",
          "aten::alias", "aten::detach", "aten::reshape_as", "aten::view_as", "aten::contiguous", "aten::item",
-         "aten::_local_scalar_dense"}
+         "aten::_local_scalar_dense",
+         # allocations without a kernel (an op's unused empty output)
+         "aten::empty", "aten::new_empty", "aten::empty_like"}
 
 
 def ops_per_frame(case: dict, path: str, device) -> tuple:
