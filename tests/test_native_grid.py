@@ -580,3 +580,15 @@ def test_disabled_native_falls_back_to_torch(tmp_path):
     assert out["same"]
     assert out["error"] and "AMS_TORCH_NATIVE" in out["error"]
     assert not (tmp_path / "cache").exists() or not any((tmp_path / "cache").iterdir())
+
+
+@pytest.mark.slow
+def test_issue_case_at_128_equals_the_dense_definition(native):
+    """The issue's 160 × 12 groom at R = 128 (float64, squeezed, moving head): the sparse torch
+    path and the native kernels give the dense definition's velocities."""
+    s = squeeze_scene(torch.float64, "cpu", strands=160, particles=12, resolution=128, scenes=1, outside=False)
+    x_d, v_d = dense_stage(s)
+    for backend in ("torch", "native"):
+        x_s, v_s = hair_hair_stage(s["grid"], s["x"], s["v"], s["mass"], s["pose"], DT, s["free"], backend=backend)
+        assert rel(v_s.reshape(v_d.shape) - s["vf"], v_d - s["vf"]) <= 1e-12, backend
+        _check_positions(x_s.reshape(x_d.shape), x_d, s["xf"], torch.float64, 128)
