@@ -92,6 +92,7 @@ def close_pairs(x, radius):
     ("jacobi_omega", 0.0), ("target_density", 0.0), ("target_density_margin", -1.0),
     ("volume_stiffness", 2.0), ("bounds_padding", -0.1), ("detailed_collisions", 1),
     ("collision_radius", 0.0), ("collision_stiffness", float("nan")), ("collision_max_per_cell", 0),
+    ("max_blocks", 0), ("max_blocks", 2.5), ("block_margin", 0.5),
 ])
 def test_config_validation_names_the_field(field, value):
     with pytest.raises(ValueError, match=field):
@@ -372,6 +373,36 @@ def test_runs_as_a_simulator_stage():
     assert (runs[1].x - runs[0].x).abs().max() > 1e-4
     pinned = sims[1].model.pinned
     assert torch.equal(runs[1].x[pinned], runs[0].x[pinned])  # pinned roots follow the head only
+
+
+@pytest.mark.parametrize("backend", ["torch", "native"])
+def test_grid_overflow_is_an_error_from_check_naming_the_frame(backend):
+    """A grid too small for the hair: the step flags it on the device (no host sync) and
+    ``sim.check`` raises GridOverflow (a SimulationDiverged) naming the first frame and the
+    capacity; a grid that holds the hair keeps the flag at −1."""
+    from ams_torch.sim.params import Params
+    from ams_torch.sim.simulator import Simulator
+    from ams_torch.sim.step import GridOverflow, SimulationDiverged
+
+    rest = head_groom(40, 8, length=0.12)
+    params = Params(check_every=0)
+    shake = [Pose.from_rotvec([0.0, 0.0, 0.5 * math.sin(0.6 * f)], [0.0, 0.0, 0.0]) for f in range(1, 5)]
+    small = Simulator(rest, params, hair_hair=HairHair(resolution=16, max_blocks=3), backend=backend)
+    roomy = Simulator(rest, params, hair_hair=HairHair(resolution=16), backend=backend)
+    assert small.hair_hair_grid.capacity == 3 and roomy.hair_hair_grid.capacity > 3
+    states = [sim.initial_state() for sim in (small, roomy)]
+    assert int(states[0].overflow_frame) == -1
+    for pose in shake:
+        states = [sim.step(st, pose) for sim, st in zip((small, roomy), states)]
+    assert int(states[0].overflow_frame) == 1 and int(states[1].overflow_frame) == -1
+    roomy.check(states[1])
+    with pytest.raises(GridOverflow, match=r"frame 1.*max_blocks: 3 blocks") as err:
+        small.check(states[0])
+    assert isinstance(err.value, SimulationDiverged) and err.value.frame == 1 and err.value.capacity == 3
+    # a state made without the field (None) counts as no overflow yet
+    old = states[1].replace(overflow_frame=None)
+    assert int(roomy.step(old, shake[0]).overflow_frame) == -1
+    roomy.check(old)
 
 
 # -- momentum-conserving pressure (SPEC §6) ---------------------------------------------------

@@ -235,7 +235,8 @@ class Simulator(torch.nn.Module):
                      time=torch.zeros((), device=dev, dtype=self.dtype),
                      frame=torch.zeros((), device=dev, dtype=torch.int64),
                      diverged_frame=torch.full((), -1, device=dev, dtype=torch.int64),
-                     diverged_input=torch.zeros((), device=dev, dtype=torch.bool))
+                     diverged_input=torch.zeros((), device=dev, dtype=torch.bool),
+                     overflow_frame=torch.full((), -1, device=dev, dtype=torch.int64))
 
     # -- dynamics -----------------------------------------------------------------------
     def control(self, state: State, pose: Optional[Pose] = None, *,
@@ -330,7 +331,9 @@ class Simulator(torch.nn.Module):
         Raises:
             ValueError: an input of the wrong type, shape, dtype or device (named).
             SimulationDiverged: the divergence guard (every ``params.check_every`` frames) found
-                non-finite or exploding particles (names the frame and strands).
+                non-finite or exploding particles (names the frame and strands), or (its subclass
+                :class:`~ams_torch.sim.step.GridOverflow`) the hair occupied more blocks than the
+                hair–hair grid holds.
         """
         control = self.control(state, pose, collider_poses=collider_poses, external_force=external_force)
         new = step_mod.step(self.model, state, control, self.config, timer)
@@ -347,10 +350,11 @@ class Simulator(torch.nn.Module):
         return new
 
     def check(self, state: State) -> None:
-        """Read the state's divergence flag (one host sync) and raise
+        """Read the state's divergence and grid-overflow flags (one host sync) and raise
         :class:`~ams_torch.sim.step.SimulationDiverged` naming the first bad frame and strands if it
-        is set. ``step`` calls it every ``params.check_every`` frames, except under ``torch.compile``,
-        where the caller decides when to check (the flag keeps the first bad frame meanwhile)."""
-        step_mod.check_state(state, self.config)
+        is set (:class:`~ams_torch.sim.step.GridOverflow` for the grid). ``step`` calls it every
+        ``params.check_every`` frames, except under ``torch.compile``, where the caller decides when
+        to check (the flags keep the first bad frame meanwhile)."""
+        step_mod.check_state(state, self.config, self.model.hair_hair)
 
     forward = step

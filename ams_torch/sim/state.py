@@ -46,6 +46,10 @@ class State:
             simulator reads it every ``check_every`` frames (:func:`ams_torch.sim.step.check_state`).
         diverged_input: () bool, whether the input of that frame (state or external force) was
             already non-finite: then the cause is the data given to the simulator, not stability.
+        overflow_frame: () int64, the first frame whose hair occupied more blocks than the hair–hair
+            grid holds (``HairHair.max_blocks``; those frames left the blocks beyond it out), −1
+            while none did; set inside the step like ``diverged_frame`` and read by the same check.
+            ``None`` (a state made without it) counts as −1.
     """
 
     x: torch.Tensor
@@ -57,12 +61,13 @@ class State:
     frame: torch.Tensor
     diverged_frame: torch.Tensor
     diverged_input: torch.Tensor
+    overflow_frame: Optional[torch.Tensor] = None
 
     def replace(self, **changes) -> "State":
         """A copy with some fields changed (``time``/``frame`` may be given as numbers)."""
-        for name in ("time", "frame", "diverged_frame", "diverged_input"):
-            if name in changes and not isinstance(changes[name], torch.Tensor):
-                old = getattr(self, name)
+        for name in ("time", "frame", "diverged_frame", "diverged_input", "overflow_frame"):
+            if name in changes and changes[name] is not None and not isinstance(changes[name], torch.Tensor):
+                old = getattr(self, name) if getattr(self, name) is not None else self.diverged_frame
                 changes[name] = torch.as_tensor(changes[name], dtype=old.dtype, device=old.device)
         return replace(self, **changes)
 

@@ -15,6 +15,7 @@ Profiler labels (``torch.profiler.record_function``): ``ams_torch.dynamics``,
 from __future__ import annotations
 
 import functools
+from contextlib import nullcontext
 from typing import Optional, Sequence
 
 import torch
@@ -33,7 +34,8 @@ from ams_torch.sim.state import Config, Control, State
 from ams_torch.stages.collide import resolve_world_poses
 from ams_torch.stages.hair_hair import hair_hair_stage
 
-__all__ = ["step", "resolve_pose", "collisions", "plastic_update", "check_state", "SimulationDiverged"]
+__all__ = ["step", "resolve_pose", "collisions", "plastic_update", "check_state", "SimulationDiverged",
+           "GridOverflow"]
 
 
 class SimulationDiverged(FloatingPointError):
@@ -45,6 +47,16 @@ class SimulationDiverged(FloatingPointError):
         self.frame = frame
         self.strands = strands
         self.bad_input = bad_input
+
+
+class GridOverflow(SimulationDiverged):
+    """The hair occupied more blocks than the hair–hair grid holds (a static capacity,
+    ``HairHair.max_blocks``): from ``.frame`` on, the blocks beyond it were left out of the
+    hair–hair stage. ``.capacity`` is the grid's capacity in blocks of 4³ cells."""
+
+    def __init__(self, message: str, frame: int, capacity: int):
+        super().__init__(message, frame=frame, strands=[])
+        self.capacity = capacity
 
 
 def resolve_pose(prev: Pose, pose: Optional[Pose], dt) -> tuple:
@@ -138,7 +150,11 @@ def stage_backend(config: Config, state: State, coeffs: Coefficients, control: C
 
 
 def _label(name: str):
-    return record_function(f"ams_torch.{name}")
+    """The stage's profiler label while a profiler runs (or the step is being compiled); nothing
+    otherwise (record_function costs ~10 µs a stage even when no profiler listens)."""
+    if torch.compiler.is_compiling() or torch._C._autograd._profiler_enabled():
+        return record_function(f"ams_torch.{name}")
+    return nullcontext()
 
 
 def step(model: Model, state: State, control: Control, config: Config, timer=None) -> State:
@@ -184,10 +200,13 @@ def step(model: Model, state: State, control: Control, config: Config, timer=Non
             x, v = native_frame_dynamics(*args)
         else:  # nothing runs after the dynamics: the frame's end is fused into its kernel
             x, v, speed = native_frame_dynamics(*args, finish=pose1, pinned=model.pinned)
+    overflow_frame, next_frame = state.overflow_frame, state.frame + 1
     if config.hair_hair:
         with stage("hair_hair"):
-            x, v = hair_hair_stage(model.hair_hair, x, v, coeffs.mass, pose1, dt, ~model.pinned,
-                                   backend="auto" if native else "torch")
+            x, v, overflow = hair_hair_stage(model.hair_hair, x, v, coeffs.mass, pose1, dt, ~model.pinned,
+                                             backend="auto" if native else "torch", with_overflow=True)
+        before = overflow_frame if overflow_frame is not None else torch.full_like(state.frame, -1)
+        overflow_frame = torch.where(overflow & (before < 0), next_frame, before)
     if config.colliders:
         with stage("collisions"):
             x, v = collisions(model, config, x, v, pose1, control.collider_poses, native)
@@ -196,14 +215,20 @@ def step(model: Model, state: State, control: Control, config: Config, timer=Non
     if config.nonhookean:
         ghost_rest = plastic_update(model, coeffs, x, ghost_rest, state.sag_offset, pose1)
     return State(x=x, v=v, ghost_rest=ghost_rest, sag_offset=state.sag_offset, pose=pose1, time=time + dt,
-                 frame=state.frame + 1, diverged_frame=diverged_frame, diverged_input=diverged_input)
+                 frame=next_frame, diverged_frame=diverged_frame, diverged_input=diverged_input,
+                 overflow_frame=overflow_frame)
 
 
-def check_state(state: State, config: Config) -> None:
+def check_state(state: State, config: Config, grid=None) -> None:
     """Divergence guard, outside the step (one host sync): raise :class:`SimulationDiverged`
     naming the first bad frame and the strands now non-finite or faster than
-    ``config.max_relative_speed`` relative to the head, if the state's flag is set."""
+    ``config.max_relative_speed`` relative to the head, if the state's flag is set; or
+    :class:`GridOverflow` if the hair–hair grid overflowed first (``grid``: the model's
+    :class:`~ams_torch.stages.hair_hair.HairHairGrid`, for the message)."""
     frame = int(state.diverged_frame)
+    overflow = -1 if state.overflow_frame is None else int(state.overflow_frame)  # on a GPU: synced already
+    if overflow >= 0 and (frame < 0 or overflow <= frame):
+        _raise_overflow(overflow, grid)
     if frame < 0:
         return
     x, v = state.x, state.v
@@ -222,3 +247,17 @@ def check_state(state: State, config: Config) -> None:
         advice = "Try more substeps, a smaller dt or lower stiffness."
     raise SimulationDiverged(f"simulation diverged at frame {frame}: {kind}{where}. {advice}", frame=frame,
                              strands=idx, bad_input=bad_input)
+
+
+def _raise_overflow(frame: int, grid) -> None:
+    capacity = getattr(grid, "capacity", -1)
+    if capacity > 0:
+        whole = grid.blocks_per_axis ** 3
+        held = (f"the grid's static capacities (max_blocks: {capacity} blocks of 4³ cells, of {whole} in the whole "
+                f"grid; max_active_cells: {grid.active_capacity} cells that carry the pressure)")
+    else:
+        held = "the grid's static capacities (max_blocks, max_active_cells)"
+    raise GridOverflow(f"hair–hair grid overflow at frame {frame}: the hair needed more than {held}, and from that "
+                       f"frame on what did not fit was left out of the hair–hair stage. Give the grid more room: "
+                       f"HairHair(max_blocks=..., max_active_cells=...), or a larger block_margin (the automatic "
+                       f"capacities are block_margin × what the rest groom needs).", frame=frame, capacity=capacity)

@@ -94,7 +94,8 @@ _BACKENDS = {
         "ams_torch_cuda",
         "cuda",
     ),
-    "grid_cpu": ("ams_torch_grid_cpu", ("grid/grid_cpu.cpp",), ("grid/grid.h",), "ams_torch_grid_cpu", "cpu"),
+    "grid_cpu": ("ams_torch_grid_cpu", ("grid/grid_cpu.cpp",), ("grid/grid.h", "grid/grid_simd.h"),
+                 "ams_torch_grid_cpu", "cpu"),
     "grid_cuda": (
         "ams_torch_grid_cuda",
         ("grid/grid_cuda_binding.cpp", "grid/grid_cuda.cu"),

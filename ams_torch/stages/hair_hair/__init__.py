@@ -8,9 +8,11 @@ velocities between neighbouring strands: hair–hair friction). Optional "detail
 then push apart particles of different strands that come closer than a radius.
 
 Modules: :mod:`.config` (settings :class:`HairHair`, fixed data :class:`HairHairGrid`),
-:mod:`.transfer` (frames, P2G, G2P, density), :mod:`.pressure` (volume preservation, with its
-derivation), :mod:`.detailed` (particle repulsion), :mod:`.native` (the grid part as registered
-ops with native CPU/CUDA kernels), :mod:`.stage` (:func:`hair_hair_stage`, :func:`make_stage`).
+:mod:`.transfer` (frames, P2G, G2P, density on the dense grid), :mod:`.pressure` (volume
+preservation, with its derivation), :mod:`.sparse` (the same grid on the blocks the hair
+occupies: the stage's torch path), :mod:`.detailed` (particle repulsion), :mod:`.native` (the
+grid part as registered ops with native CPU/CUDA kernels), :mod:`.stage`
+(:func:`hair_hair_stage`, :func:`make_stage`).
 
 Choices (written down here because the paper leaves them open):
 
@@ -26,6 +28,13 @@ Choices (written down here because the paper leaves them open):
   samples of each face grid), one stencil per particle and face grid shared by mass and
   momentum, no Python loop over particles. Particles outside the grid keep their velocity
   (their missing weight falls back to their own velocity).
+* **Storage that follows the hair.** The dense R³ grid of :mod:`.transfer` / :mod:`.pressure` is
+  the definition; the stage stores and visits only the 4³-cell blocks the hair occupies
+  (:mod:`.sparse`): a pool of ``HairHairGrid.capacity`` blocks per scene (``HairHair.max_blocks``,
+  by default 4 × the rest groom's), so R = 128 costs about what R = 64 does instead of 8×.
+  Capacities are static shapes; a frame whose hair needs more is flagged on the device
+  (``State.overflow_frame``) and ``Simulator.check`` raises ``GridOverflow``. In float64 the
+  values are the dense grid's (tests compare them).
 * **Density.** A cell's mass is the mean over the three axes of the average of its two face
   masses (a smoothed cell-centred rasterisation); density = mass / h³ in kg/m³.
 * **Volume preservation** (unilateral, as Narain et al. 2010 do for granular media), conserving
@@ -52,7 +61,7 @@ Choices (written down here because the paper leaves them open):
 
 Nothing is allocated unless a scene enables hair–hair: :func:`build_hair_hair` returns ``None``
 for a ``None`` config and :func:`hair_hair_stage` with ``grid=None`` returns its inputs.
-Per-frame grid buffers are temporaries of the stage (PyTorch's caching allocator reuses them).
+Per-frame grid buffers (the block pool) are temporaries of the stage.
 """
 from ams_torch.stages.hair_hair.config import HairHair, HairHairGrid, build_hair_hair
 from ams_torch.stages.hair_hair.stage import hair_hair_stage, make_stage

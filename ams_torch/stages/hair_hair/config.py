@@ -7,9 +7,14 @@ from typing import Optional
 
 import torch
 
-from ams_torch.stages.hair_hair.transfer import grid_density
+from ams_torch.stages.hair_hair.sparse import (BLOCK_CELLS, active_cells, block_layout, blocks_per_axis, p2g_sparse,
+                                              pool_density)
+from ams_torch.stages.hair_hair.transfer import scene_frame
 
 __all__ = ["HairHair", "HairHairGrid", "build_hair_hair"]
+
+MIN_AUTO_BLOCKS = 64  # the smallest automatic capacity (blocks per scene)
+MIN_AUTO_ACTIVE = 4096  # the smallest automatic active-cell capacity (cells per scene)
 
 
 def _check_int(name: str, value, minimum: int) -> None:
@@ -50,6 +55,17 @@ class HairHair:
             the spatial-hash cell size). Default 2e-3.
         collision_stiffness: share in [0, 1] of a pair's overlap removed per frame. Default 0.5.
         collision_max_per_cell: particles examined per neighbouring hash cell (≥ 1). Default 8.
+        max_blocks: blocks of 4³ cells each scene's grid holds (≥ 1; a static capacity, see
+            :mod:`.sparse`: storage and work follow the hair, not the R³ box). ``None`` (default):
+            ``block_margin ×`` the blocks the rest groom occupies (at least 64), at most the whole
+            grid. A frame whose hair occupies more blocks is flagged on the device and
+            ``Simulator.check`` raises :class:`~ams_torch.sim.step.GridOverflow`.
+        block_margin: multiplier (≥ 1) used when ``max_blocks`` or ``max_active_cells`` is None.
+            Default 4.
+        max_active_cells: cells per scene that can carry the pressure (all six faces massive) the
+            torch path's sweeps hold (≥ 1; a static capacity: its sweeps cost this, not the
+            pool). ``None`` (default): ``block_margin ×`` the active cells of the rest groom, at
+            least 4,096, at most the pool's cells. More is flagged on both paths like the blocks.
     """
 
     resolution: int = 128
@@ -64,6 +80,9 @@ class HairHair:
     collision_radius: float = 2e-3
     collision_stiffness: float = 0.5
     collision_max_per_cell: int = 8
+    max_blocks: Optional[int] = None
+    block_margin: float = 4.0
+    max_active_cells: Optional[int] = None
 
     def __post_init__(self):
         _check_int("resolution", self.resolution, 2)
@@ -80,6 +99,11 @@ class HairHair:
         _check_real("collision_radius", self.collision_radius, 0.0, lo_open=True)
         _check_real("collision_stiffness", self.collision_stiffness, 0.0, 1.0)
         _check_int("collision_max_per_cell", self.collision_max_per_cell, 1)
+        if self.max_blocks is not None:
+            _check_int("max_blocks", self.max_blocks, 1)
+        _check_real("block_margin", self.block_margin, 1.0)
+        if self.max_active_cells is not None:
+            _check_int("max_active_cells", self.max_active_cells, 1)
 
     def build(self, rest_positions, particle_mass, device=None, dtype=None) -> "HairHairGrid":
         """Fit the grid to the rest groom and allocate its fixed data.
@@ -116,12 +140,29 @@ class HairHair:
         side = max(side, 1e-6)
         h = side / self.resolution
         origin = (lo + hi) / 2 - side / 2
-        grid = HairHairGrid(self, h, origin, torch.ones((), device=rest.device, dtype=dtype), s, n)
+        whole = blocks_per_axis(self.resolution) ** 3
+        # the rest groom on a pool that just holds it: its blocks, peak density and active cells
+        head = rest.reshape(1, -1, 3)
+        occupied = int(block_layout(head, origin, h, self.resolution, whole)[2])
+        frame = scene_frame(None, (), 1, dtype, rest.device)
+        pool = p2g_sparse(head, torch.zeros_like(head), mass.reshape(1, -1), frame, origin, h, self.resolution,
+                          max(1, occupied))
+        if self.max_blocks is not None:
+            capacity = min(self.max_blocks, whole)
+        else:
+            capacity = min(whole, max(MIN_AUTO_BLOCKS, math.ceil(self.block_margin * occupied)))
+        grid = HairHairGrid(self, h, origin, torch.ones((), device=rest.device, dtype=dtype), s, n, capacity)
         if self.target_density is not None:
             target = torch.as_tensor(self.target_density, device=rest.device, dtype=dtype)
-        else:
-            target = grid_density(grid, rest, mass, None).max() * self.target_density_margin
+        else:  # the peak of grid_density(rest), read from the pool (no R³ array)
+            target = pool_density(*pool[:3], h, self.resolution).max() * self.target_density_margin
         grid.target_density = target.detach().clone()
+        cells = capacity * BLOCK_CELLS
+        if self.max_active_cells is not None:
+            grid.active_capacity = min(self.max_active_cells, cells)
+        else:
+            active = int(active_cells(*pool[:3], grid.target_density, h, self.resolution))
+            grid.active_capacity = min(cells, max(MIN_AUTO_ACTIVE, math.ceil(self.block_margin * active)))
         return grid
 
 
@@ -139,11 +180,15 @@ class HairHairGrid(torch.nn.Module):
         resolution: R, cells per axis.
         cell_size: h, metres (cubic cells).
         num_strands, num_particles: S and N of the groom it was fitted to.
+        capacity: K, blocks of 4³ cells per scene (``config.max_blocks``, or what the build
+            derived from the rest groom; default here: the whole grid).
+        active_capacity: active cells per scene the torch path's sweeps hold
+            (``config.max_active_cells`` or derived; default here: every pool cell).
         hash_size: cells per axis of the detailed-collision hash (cell size = collision radius).
     """
 
     def __init__(self, config: HairHair, cell_size: float, origin: torch.Tensor, target_density: torch.Tensor,
-                 num_strands: int, num_particles: int):
+                 num_strands: int, num_particles: int, capacity: Optional[int] = None):
         super().__init__()
         if not isinstance(config, HairHair):
             raise ValueError(f"config must be a HairHair; got {type(config).__name__}")
@@ -155,9 +200,20 @@ class HairHairGrid(torch.nn.Module):
         self.cell_size = float(cell_size)
         self.num_strands = int(num_strands)
         self.num_particles = int(num_particles)
+        whole = blocks_per_axis(self.resolution) ** 3
+        self.capacity = whole if capacity is None else int(capacity)
+        if not 1 <= self.capacity <= whole:
+            raise ValueError(f"capacity must be in [1, {whole}] blocks for resolution {self.resolution}; "
+                             f"got {capacity!r}")
+        self.active_capacity = self.capacity * BLOCK_CELLS
         self.hash_size = int(math.ceil(self.cell_size * self.resolution / config.collision_radius)) + 3
         self.register_buffer("origin", origin)
         self.register_buffer("target_density", target_density)
+
+    @property
+    def blocks_per_axis(self) -> int:
+        """nb = R // 4 + 1: blocks of 4³ cells per axis (the whole grid is nb³ blocks)."""
+        return blocks_per_axis(self.resolution)
 
     @property
     def extent(self) -> float:
@@ -166,7 +222,7 @@ class HairHairGrid(torch.nn.Module):
 
     def extra_repr(self) -> str:
         return (f"resolution={self.resolution}, cell_size={self.cell_size:.4g} m, strands={self.num_strands}, "
-                f"particles={self.num_particles}")
+                f"particles={self.num_particles}, capacity={self.capacity} blocks, {self.active_capacity} active cells")
 
 
 def build_hair_hair(config: Optional[HairHair], rest_positions, particle_mass, device=None,

@@ -9,9 +9,9 @@ import torch
 from ams_torch.geometry.pose import Pose
 from ams_torch.stages.hair_hair.config import HairHairGrid
 from ams_torch.stages.hair_hair.detailed import detailed_collisions
-from ams_torch.stages.hair_hair.native import NATIVE_DTYPES, g2p_op, p2g_op, pressure_op
-from ams_torch.stages.hair_hair.pressure import pressure_torch
-from ams_torch.stages.hair_hair.transfer import g2p_torch, p2g_torch, scene_frame, to_head
+from ams_torch.stages.hair_hair.native import NATIVE_DTYPES, g2p, p2g, pressure
+from ams_torch.stages.hair_hair.sparse import g2p_sparse, p2g_sparse, pressure_sparse
+from ams_torch.stages.hair_hair.transfer import scene_frame, to_head
 
 __all__ = ["BACKENDS", "hair_hair_stage", "make_stage"]
 
@@ -87,7 +87,8 @@ def _use_native(backend: str, tensors, dtype) -> bool:
 
 
 def hair_hair_stage(grid: Optional[HairHairGrid], x: torch.Tensor, v: torch.Tensor, mass,
-                    head_pose: Optional[Pose], dt, free: Optional[torch.Tensor] = None, backend: str = "auto"):
+                    head_pose: Optional[Pose], dt, free: Optional[torch.Tensor] = None, backend: str = "auto",
+                    with_overflow: bool = False):
     """Hair–hair interaction for one frame (SPEC §6), run after inextensibility.
 
     Args:
@@ -106,9 +107,15 @@ def hair_hair_stage(grid: Optional[HairHairGrid], x: torch.Tensor, v: torch.Tens
             float32/float64 and nothing requires grad (``AMS_TORCH_NATIVE=0`` disables them);
             otherwise the torch definition. ``"native"``: the native kernels or an error.
             ``"torch"``: the torch definition (differentiable).
+        with_overflow: also return the overflow flag.
     Returns:
         (x', v'): (..., S, N, 3) metres and m/s, with ``x' = x + dt (v' − v)`` for the grid part
-        (plus the position push of detailed collisions, when enabled).
+        (plus the position push of detailed collisions, when enabled); with ``with_overflow``,
+        (x', v', overflow): overflow () bool, True when some scene's hair occupied more blocks
+        than ``grid.capacity`` (the blocks beyond it were left out of this frame's grid) or had
+        more active cells than ``grid.active_capacity`` (the cells beyond it kept φ = 0): the
+        result is not the grid's, and ``Simulator.check`` raises. Never set when both
+        capacities are the whole grid.
 
     No host synchronisation, no data-dependent branch or shape: capturable by
     ``torch.compile(fullgraph=True)`` and CUDA graphs (for graphs, keep the grid, ``free``,
@@ -117,30 +124,32 @@ def hair_hair_stage(grid: Optional[HairHairGrid], x: torch.Tensor, v: torch.Tens
     grid part.
     """
     if grid is None:
-        return x, v
+        return (x, v, torch.zeros((), dtype=torch.bool, device=x.device)) if with_overflow else (x, v)
     cfg = grid.config
     xf, vf, m, free, lead = _inputs(grid, x, v, mass, free)
     dtt = _dt_tensor(dt, x)
     frame = scene_frame(head_pose, lead, xf.shape[0], x.dtype, x.device)
     origin = _like(grid.origin, x)
     target = _like(grid.target_density, x)
-    h, r, pic = grid.cell_size, grid.resolution, 1.0 - cfg.flip
+    h, r, k, pic = grid.cell_size, grid.resolution, grid.capacity, 1.0 - cfg.flip
     solve = (cfg.pressure_iterations, cfg.jacobi_omega, cfg.volume_stiffness, pic)
     if _use_native(backend, (xf, vf, m, frame, origin, target, dtt), x.dtype):
         strict = backend == "native"
-        faces = p2g_op(xf.contiguous(), vf.contiguous(), m.contiguous(), frame.contiguous(), origin.contiguous(),
-                       h, r, strict)
-        _, field = pressure_op(faces, target, dtt, h, r, *solve, strict)
-        x1, v1 = g2p_op(xf.contiguous(), vf.contiguous(), field, frame.contiguous(), origin.contiguous(), free, dtt,
-                        h, r, pic, strict)
+        xc, vc, frame, origin = xf.contiguous(), vf.contiguous(), frame.contiguous(), origin.contiguous()
+        faces, table, blocks, count = p2g(xc, vc, m.contiguous(), frame, origin, h, r, k, strict)
+        _, field, overflow = pressure(faces, table, blocks, count, target, dtt, h, r, *solve, grid.active_capacity,
+                                      strict)
+        x1, v1 = g2p(xc, vc, field, table, frame, origin, free, dtt, h, r, pic, strict)
     else:
         stencils: list = []
-        faces = p2g_torch(xf, vf, m, frame, origin, h, r, stencils)
-        _, field = pressure_torch(faces, target, dtt, h, r, *solve)
-        x1, v1 = g2p_torch(xf, vf, field, frame, origin, free, dtt, h, r, pic, stencils)
+        faces, table, blocks, count = p2g_sparse(xf, vf, m, frame, origin, h, r, k, stencils)
+        _, field, overflow = pressure_sparse(faces, table, blocks, count, target, dtt, h, r, *solve,
+                                             grid.active_capacity)
+        x1, v1 = g2p_sparse(xf, vf, field, table, frame, origin, free, dtt, h, r, pic, stencils)
     if cfg.detailed_collisions:
         x1, v1 = _after_detailed_collisions(grid, xf, x1, v1, m, frame, free)
-    return x1.reshape(x.shape), v1.reshape(v.shape)
+    out = x1.reshape(x.shape), v1.reshape(v.shape)
+    return out + (overflow.any(),) if with_overflow else out
 
 
 def _after_detailed_collisions(grid, x, x1, v1, m, frame, free):

@@ -21,8 +21,8 @@ import torch
 
 from ams_torch.geometry.pose import Pose
 
-__all__ = ["face_dims", "num_faces", "scene_frame", "to_head", "face_stencil", "p2g_torch", "g2p_torch",
-           "cell_mass", "grid_density"]
+__all__ = ["face_dims", "num_faces", "scene_frame", "to_head", "face_corners", "face_stencil", "p2g_torch",
+           "g2p_torch", "cell_mass", "grid_density"]
 
 
 def face_dims(r: int, c: int) -> Tuple[int, int, int]:
@@ -78,14 +78,14 @@ def to_head(frame: torch.Tensor, x: torch.Tensor, v: Optional[torch.Tensor], x_r
     return xl, torch.einsum("bji,bpj->bpi", rot, vr)
 
 
-def face_stencil(xl: torch.Tensor, origin: torch.Tensor, h: float, r: int, c: int):
-    """Trilinear stencil of head-frame points on the c-face grid.
+def face_corners(xl: torch.Tensor, origin: torch.Tensor, h: float, r: int, c: int):
+    """Lower corner and trilinear weights of head-frame points on the c-face grid.
 
-    xl: (B, P, 3) m; origin: (3,) m; h: cell size m. Returns flat indices (B, P, 8) long into a
-    (B, 3, F) face field (scene b, component c starts at ``(3 b + c) F``) and weights (B, P, 8),
-    zero for samples outside the grid. Per axis the lower corner is clamped to [0, n − 2] and
-    only the weights of corners that exist are kept (a particle half outside keeps the share
-    of the samples inside; one fully outside gets zero weights).
+    xl: (B, P, 3) m; origin: (3,) m; h: cell size m. Returns the lower corner (B, P, 3) long
+    (face indices per axis) and the weights (B, P, 8) of corners (i, j, k) ∈ {0, 1}³ at
+    ``4 i + 2 j + k``, zero for samples outside the grid. Per axis the lower corner is clamped to
+    [0, n − 2] and only the weights of corners that exist are kept (a particle half outside
+    keeps the share of the samples inside; one fully outside gets zero weights).
     """
     dims = face_dims(r, c)
     g = (xl - origin.to(xl.dtype)) / h
@@ -102,12 +102,24 @@ def face_stencil(xl: torch.Tensor, origin: torch.Tensor, h: float, r: int, c: in
     w1 = torch.where(d == 0, f, torch.where(d == 1, one_f, zero))
     wa = torch.stack((w0, w1), -1)  # (B, P, 3, 2)
     w = wa[..., 0, :, None, None] * wa[..., 1, None, :, None] * wa[..., 2, None, None, :]
-    b, p = g.shape[:2]
+    return bc, w.reshape(g.shape[0], g.shape[1], 8)
+
+
+def face_stencil(xl: torch.Tensor, origin: torch.Tensor, h: float, r: int, c: int):
+    """Trilinear stencil of head-frame points on the dense c-face grid.
+
+    xl: (B, P, 3) m; origin: (3,) m; h: cell size m. Returns flat indices (B, P, 8) long into a
+    (B, 3, F) face field (scene b, component c starts at ``(3 b + c) F``) and weights (B, P, 8)
+    of :func:`face_corners`.
+    """
+    dims = face_dims(r, c)
+    bc, w = face_corners(xl, origin, h, r, c)
+    b = bc.shape[0]
     flat = (bc[..., 0] * dims[1] + bc[..., 1]) * dims[2] + bc[..., 2]
-    flat = flat + ((torch.arange(b, device=g.device) * 3 + c) * num_faces(r))[:, None]
-    o = torch.arange(2, device=g.device)
+    flat = flat + ((torch.arange(b, device=bc.device) * 3 + c) * num_faces(r))[:, None]
+    o = torch.arange(2, device=bc.device)
     offs = ((o[:, None, None] * dims[1] + o[None, :, None]) * dims[2] + o[None, None, :]).reshape(8)
-    return flat[..., None] + offs, w.reshape(b, p, 8)
+    return flat[..., None] + offs, w
 
 
 def _face_mass_momentum(xl, vl, m, origin, h: float, r: int, stencils=None):
@@ -157,13 +169,24 @@ def g2p_torch(x: torch.Tensor, v: torch.Tensor, field: torch.Tensor, frame: torc
     ``x' = x + dt R Δv`` and ``v' = v + R Δv``: (B, P, 3) world m and m/s.
     """
     xl, vl = to_head(frame, x, v)
-    b, p = xl.shape[:2]
+    flat = field.reshape(-1)
     dvl = []
     for c in range(3):
         idx, w = stencils[c] if stencils is not None else face_stencil(xl, origin, cell_size, resolution, c)
-        interp = (field.reshape(-1)[idx] * w).sum(-1)
-        dvl.append(interp - pic * w.sum(-1) * vl[..., c])
-    dvl = torch.stack(dvl, -1)
+        dvl.append(interpolate_change(flat, idx, w, vl[..., c], pic))
+    return apply_change(x, v, torch.stack(dvl, -1), frame, free, dt)
+
+
+def interpolate_change(flat: torch.Tensor, idx: torch.Tensor, w: torch.Tensor, vl_c: torch.Tensor, pic: float):
+    """One component of a particle's G2P change ``I(field) − pic · wsum · v_rel``: flat (M,) face
+    values m/s, idx / w (B, P, 8) a stencil into it, vl_c (B, P) m/s. Returns (B, P) m/s."""
+    return (flat[idx] * w).sum(-1) - pic * w.sum(-1) * vl_c
+
+
+def apply_change(x: torch.Tensor, v: torch.Tensor, dvl: torch.Tensor, frame: torch.Tensor, free: torch.Tensor, dt):
+    """``x + dt R Δv`` and ``v + R Δv`` (Δv zero where not ``free[p mod M]``): x, v, dvl (B, P, 3)
+    world m, m/s and head-frame m/s; frame (B, 6, 3); free (M,) bool; dt s."""
+    p = x.shape[1]
     free_p = free.to(device=x.device, dtype=torch.bool).repeat(p // free.shape[0])
     dvl = torch.where(free_p[None, :, None], dvl, torch.zeros_like(dvl))
     dxl = dt * dvl
