@@ -39,8 +39,7 @@ from ams_torch.sim import native
 from ams_torch.solver import build as _native
 from ams_torch.solver.reference import solve_banded_dense
 from ams_torch.stages.collide import resolve_world_poses
-from ams_torch.stages.hair_hair.pressure import pressure_torch
-from ams_torch.stages.hair_hair.transfer import p2g_torch
+from ams_torch.stages.hair_hair.sparse import densify, p2g_sparse
 
 F64, F32 = torch.float64, torch.float32
 EPS32 = torch.finfo(F32).eps
@@ -218,27 +217,31 @@ def test_collide_does_not_depend_on_the_schedule(emu, emu_env):
 @pytest.mark.parametrize("dtype", [F64, F32])
 @pytest.mark.parametrize("schedule", ["forward"] + list(SCHEDULES))
 def test_grid_ops(cpu, emu, emu_env, dtype, schedule):
-    """P2G (warp-aggregated atomics), pressure (one block per scene, __syncthreads between sweeps)
-    and G2P against the CPU kernels, 3 scenes, every schedule (atomics racing on two threads)."""
+    """P2G (block slots by atomics, warp-aggregated adds into the pool), pressure (one block per
+    scene, __syncthreads between sweeps) and G2P against the CPU kernels and the sparse torch
+    definition, 3 scenes, every schedule (atomics racing on two threads). Slots may be handed out
+    in another order than on the CPU: pools are compared in their dense layout."""
     if schedule != "forward":
         emu_env(**SCHEDULES[schedule])
     s = squeeze_scene(dtype, strands=60, particles=8, resolution=12, scenes=3)
     grid = s["grid"]
-    h, r = grid.cell_size, grid.resolution
+    h, r, k = grid.cell_size, grid.resolution, grid.capacity
     ns_c, ns_e = cpu["grid_cpu"], emu["grid_cuda_emu"]
-    args = (s["xf"], s["vf"], s["m"], s["frame"], grid.origin, h, r)
-    faces_c, faces_e = ns_c.p2g(*args), ns_e.p2g(*args)
-    assert rel(faces_e, faces_c) <= grid_tol(dtype, r)
-    assert rel(faces_e, p2g_torch(*args)) <= grid_tol(dtype, r)
-    solve = (grid.target_density, s["dt"], h, r, *_solve_args(grid))
-    phi_c, field_c = ns_c.pressure(faces_c, *solve)
-    phi_e, field_e = ns_e.pressure(faces_c, *solve)
-    assert float(phi_c.max()) > 0  # the squeeze pushes
-    assert rel(phi_e, phi_c) <= grid_tol(dtype, r) and rel(field_e, field_c) <= grid_tol(dtype, r)
-    phi_t, _ = pressure_torch(faces_c, *solve)
-    assert rel(phi_e, phi_t) <= grid_tol(dtype, r)
-    g2p = (s["xf"], s["vf"], field_c, s["frame"], grid.origin, s["free"], s["dt"], h, r, 0.05)
-    (xc, vc), (xe, ve) = ns_c.g2p(*g2p), ns_e.g2p(*g2p)
+    args = (s["xf"], s["vf"], s["m"], s["frame"], grid.origin, h, r, k)
+    pool_c, pool_e, pool_t = ns_c.p2g(*args), ns_e.p2g(*args), p2g_sparse(*args)
+    assert torch.equal(pool_e[3], pool_c[3])  # the same number of blocks per scene
+    dense = lambda pool: densify(pool[0], pool[2], r)  # noqa: E731
+    assert rel(dense(pool_e), dense(pool_c)) <= grid_tol(dtype, r)
+    assert rel(dense(pool_e), dense(pool_t)) <= grid_tol(dtype, r)
+    solve = (grid.target_density, s["dt"], h, r, *_solve_args(grid), grid.active_capacity)
+    phi_c, field_c, over_c = ns_c.pressure(*pool_c, *solve)
+    phi_e, field_e, over_e = ns_e.pressure(*pool_e, *solve)
+    assert float(phi_c.max()) > 0 and not bool(over_e.any()) and torch.equal(over_e, over_c)  # the squeeze pushes
+    assert rel(densify(phi_e, pool_e[2], r), densify(phi_c, pool_c[2], r)) <= grid_tol(dtype, r)
+    assert rel(densify(field_e, pool_e[2], r), densify(field_c, pool_c[2], r)) <= grid_tol(dtype, r)
+    g2p = lambda field, pool: (s["xf"], s["vf"], field, pool[1], s["frame"], grid.origin, s["free"], s["dt"], h,  # noqa: E731
+                               r, 0.05)
+    (xc, vc), (xe, ve) = ns_c.g2p(*g2p(field_c, pool_c)), ns_e.g2p(*g2p(field_e, pool_e))
     assert rel(ve - s["vf"], vc - s["vf"]) <= grid_tol(dtype, r)
     assert rel(xe - s["xf"], xc - s["xf"]) <= grid_tol(dtype, r) + 8 * torch.finfo(dtype).eps
 
@@ -248,7 +251,7 @@ def test_grid_p2g_tells_deterministic_mode(emu):
     the binding raises (alertNotDeterministic); the registered op takes the torch definition there on CUDA."""
     s = squeeze_scene(F64, strands=20, particles=6, resolution=8, scenes=1)
     grid = s["grid"]
-    args = (s["xf"], s["vf"], s["m"], s["frame"], grid.origin, grid.cell_size, grid.resolution)
+    args = (s["xf"], s["vf"], s["m"], s["frame"], grid.origin, grid.cell_size, grid.resolution, grid.capacity)
     before = torch.are_deterministic_algorithms_enabled()
     torch.use_deterministic_algorithms(True)
     try:
