@@ -244,6 +244,11 @@ def test_clear_errors(toy, groom_b, trained):
         m.predict(short)
     with pytest.raises(ValueError, match="guide_index"):
         Agnostic(**_opts("agnostic", steps=1)).fit(train, torch.arange(G), valid=valid)
+    # the upsampler validates on its own groom: another groom's valid split is replaced by held-out train sequences
+    with pytest.warns(UserWarning, match="no window of the valid split suits"):
+        up = Upsampler(**_opts("upsampler", steps=2)).fit(train, train[0]["guide_index"],
+                                                          valid=DenseGuides(groom_b, G, split="train"))
+    assert up.result["steps"] == 2
     # the upsampler trains on one groom only
     both = torch.utils.data.ConcatDataset([train, DenseGuides(groom_b, G, split="train")])
     with pytest.raises(ValueError, match="bound to one groom"):

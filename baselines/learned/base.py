@@ -163,6 +163,11 @@ class LearnedInterpolator(Interpolator):
     def meta_key(self, meta: dict):
         return meta
 
+    def unsuitable(self, item: dict, first: dict) -> str:
+        """Why a validation window cannot score this method trained on items like ``first``
+        ('' when it can)."""
+        return ""
+
     @abstractmethod
     def make_model(self, meta: dict) -> nn.Module:
         """The untrained model of ``meta`` (:meth:`data_meta`)."""

@@ -118,6 +118,13 @@ def _validate(method, model, view, ids, opt, device, rank, world):
     return float(tot[0]) / n, {k: float(v) / n for k, v in zip(keys, extra.tolist())}
 
 
+def _validation_windows(method, valid, first: dict, opt: dict):
+    """(window view of ``valid``, the validation window ids that suit the method)."""
+    vview = window_view(valid, method.window, method.window)
+    ids = _validation_ids(len(vview), opt["valid_windows"])
+    return vview, [i for i in ids if not method.unsuitable(vview[i], first)]
+
+
 def _make_key(method, meta_key, guides, data) -> str:
     return digest({"method": method.name, "config": method.model_options(), "meta": meta_key,
                    "guides": [int(g) for g in guides], "data": data})
@@ -134,12 +141,12 @@ def fit_method(method, train, guides: torch.Tensor, valid=None) -> dict:
     if opt["batch"] % world:
         raise ValueError(f"{method.name}: batch = {opt['batch']} windows must be divisible by the world size {world}")
     data_key = {"train": dataset_fingerprint(train), "valid": None if valid is None else dataset_fingerprint(valid)}
+    given, whole = valid, train
     if valid is None:
         train, valid = holdout(train, opt["holdout"])
     view = window_view(train, method.window, opt["stride"])
-    vview = window_view(valid, method.window, method.window)
-    if len(view) == 0 or len(vview) == 0:
-        raise ValueError(f"{method.name}: no training or validation window of {method.window} frames")
+    if len(view) == 0:
+        raise ValueError(f"{method.name}: no training window of {method.window} frames")
     first = view[0]
     check_item(first, method.name)
     if first["positions"].shape[0] < method.window:
@@ -149,6 +156,15 @@ def fit_method(method, train, guides: torch.Tensor, valid=None) -> dict:
     if not torch.equal(first["guide_index"].long().cpu(), gi):
         raise ValueError(f"{method.name}: fit(guides=...) got {gi.tolist()[:8]}... but the items' guide_index is "
                          f"{first['guide_index'].tolist()[:8]}... (open the dataset with the same guides)")
+    vview, vids = _validation_windows(method, valid, first, opt)
+    if not vids and given is not None:
+        warnings.warn(f"{method.name}: no window of the valid split suits the method (e.g. another groom); "
+                      f"validating on sequences held out of the train split instead", stacklevel=3)
+        train, valid = holdout(whole, opt["holdout"])
+        view = window_view(train, method.window, opt["stride"])
+        vview, vids = _validation_windows(method, valid, first, opt)
+    if not vids:
+        raise ValueError(f"{method.name}: no validation window suits the method")
     meta = method.data_meta(first)
     key = _make_key(method, method.meta_key(meta), gi, data_key)
     path = method.checkpoint
@@ -183,7 +199,6 @@ def fit_method(method, train, guides: torch.Tensor, valid=None) -> dict:
             dist.broadcast(p, 0)
     for g in optim.param_groups:
         g["lr"] = state["lr"]
-    vids = _validation_ids(len(vview), opt["valid_windows"])
 
     def checkpoint(finished: bool, stopped: Optional[str]):
         if rank != 0 or not path:

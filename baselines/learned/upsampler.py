@@ -8,6 +8,8 @@ the model): every training sequence must share one groom, and ``predict`` refuse
 """
 from __future__ import annotations
 
+import hashlib
+
 import torch
 
 from baselines.protocol import MethodError
@@ -49,8 +51,14 @@ class Upsampler(LearnedInterpolator):
                 "num_pinned": item["num_pinned"].detach().cpu().long()}
 
     def meta_key(self, meta: dict):
-        return digest([meta["rest"].numpy().tobytes().hex(), meta["guide_index"].tolist(),
+        return digest([hashlib.sha256(meta["rest"].numpy().tobytes()).hexdigest(), meta["guide_index"].tolist(),
                        meta["num_pinned"].tolist()])
+
+    def unsuitable(self, item: dict, first: dict) -> str:
+        rest, mine = item["rest_positions"], first["rest_positions"]
+        if rest.shape != mine.shape or not torch.allclose(rest, mine, atol=1e-6, rtol=0):
+            return "another groom"
+        return ""
 
     def make_model(self, meta: dict) -> GuideUpsampler:
         o = self.options
