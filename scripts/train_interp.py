@@ -33,7 +33,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--method", required=True, help="upsampler, agnostic, collision, temporal, or package.module:factory")
+    p.add_argument("--method", required=True,
+                   help="upsampler, agnostic, collision, temporal, or package.module:factory")
     p.add_argument("--data", required=True, help="an `ams-torch generate` dataset (folder or shard file)")
     p.add_argument("--guides", type=int, required=True, help="guide count G (one of the recipe's [store] guides)")
     p.add_argument("--out", required=True, help="output folder (created): model.pt, history.json, summary.json")

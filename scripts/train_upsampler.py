@@ -6,6 +6,8 @@ early stopping) on what :class:`baselines.data.HairDataset` reads (such a file, 
 file's guide order) as the guide input and 2 pinned particles per strand.
 
     python scripts/train_upsampler.py --data out/baselines/data.h5 --guides 128 --out out/up128.pt
+    torchrun --nnodes=1 --nproc_per_node=2 --master_addr=127.0.0.1 --master_port=29512 \
+        scripts/train_upsampler.py ...        # DDP: gloo on CPU (loopback only), nccl on GPUs
 """
 from __future__ import annotations
 
@@ -16,6 +18,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # train_interp
 
 from baselines.data import HairDataset  # noqa: E402
 from baselines.learned import Upsampler  # noqa: E402
@@ -36,6 +39,8 @@ def parse_args(argv=None):
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (0: torch's default)")
+    p.add_argument("--device", default=None, help="cpu (default) or cuda")
+    p.add_argument("--init-method", default="env://", help="torch.distributed init method under DDP")
     p.add_argument("--no-progress", action="store_true")
     return p.parse_args(argv)
 
@@ -67,15 +72,25 @@ class LegacyItems(torch.utils.data.Dataset):
 def main(argv=None) -> dict:
     """Train; returns {"history": training loss per step (mm²), "model": the GuideUpsampler,
     "steps", "method"}."""
+    from train_interp import setup_distributed
+
     args = parse_args(argv)
     if args.threads > 0:
         torch.set_num_threads(args.threads)
-    items = LegacyItems(HairDataset(args.data, split=args.split), args.guides)
-    strands = min(128, items.ds.rest.shape[0])
-    method = Upsampler(checkpoint=args.out, k=args.k, hidden=args.hidden, layers=args.layers, steps=args.steps,
-                       batch=max(1, args.batch // strands), strands=strands, lr=args.lr, seed=args.seed,
-                       progress=not args.no_progress)
-    method.fit(items, items.gi)
+    _, world, device = setup_distributed(args.init_method, args.device)
+    try:
+        items = LegacyItems(HairDataset(args.data, split=args.split), args.guides)
+        strands = min(128, items.ds.rest.shape[0])
+        batch = max(world, args.batch // strands // world * world)
+        method = Upsampler(device=device, checkpoint=args.out, k=args.k, hidden=args.hidden, layers=args.layers,
+                           steps=args.steps, batch=batch, strands=strands, lr=args.lr, seed=args.seed,
+                           progress=not args.no_progress)
+        method.fit(items, items.gi)
+    finally:
+        if world > 1:
+            import torch.distributed as dist
+
+            dist.destroy_process_group()
     return {"history": method.history["train"], "model": method.model, "steps": method.result["steps"],
             "method": method}
 

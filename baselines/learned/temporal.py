@@ -34,7 +34,8 @@ LEVER = 0.1  # m: a rotation increment enters as the displacement at this distan
 
 def _axial(q: torch.Tensor) -> torch.Tensor:
     """Axial vector ½ (Q − Qᵀ)ˇ of (..., 3, 3) → (..., 3) (sin θ · axis for a rotation)."""
-    return 0.5 * torch.stack((q[..., 2, 1] - q[..., 1, 2], q[..., 0, 2] - q[..., 2, 0], q[..., 1, 0] - q[..., 0, 1]), -1)
+    return 0.5 * torch.stack((q[..., 2, 1] - q[..., 1, 2], q[..., 0, 2] - q[..., 2, 0],
+                              q[..., 1, 0] - q[..., 0, 1]), -1)
 
 
 def motion_inputs(binding: GroomBinding, gh: torch.Tensor, gh_prev: torch.Tensor, rot: torch.Tensor,
