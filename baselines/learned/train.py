@@ -175,8 +175,9 @@ def fit_method(method, train, guides: torch.Tensor, valid=None) -> dict:
             warnings.warn(f"{path}: the checkpoint was trained with another method, model configuration, guides or "
                           f"data; training anew (it will be overwritten)", stacklevel=3)
             blob = None
-    torch.manual_seed(opt["seed"])
-    model = method.make_model(meta if blob is None else blob["meta"]).to(device)
+    with torch.random.fork_rng(devices=[]):  # the initial weights come from the seed; the caller's RNG is left alone
+        torch.manual_seed(opt["seed"])
+        model = method.make_model(meta if blob is None else blob["meta"]).to(device)
     if blob is not None and blob["finished"] and (blob["stopped"] == "early" or blob["steps"] >= opt["steps"]):
         model.load_state_dict(blob["model"])
         method.model = model.eval()
