@@ -31,7 +31,7 @@ __all__ = ["TRAIN_DEFAULTS", "LearnedInterpolator", "StrandMLP", "register_metho
 
 #: training options every learned method takes (see :mod:`baselines.learned.train`)
 TRAIN_DEFAULTS: Dict[str, object] = {
-    "steps": 4000,          # most optimiser steps
+    "steps": 20000,         # most optimiser steps (a cap: early stopping ends sooner once validation stalls)
     "batch": 16,            # windows per step (global, over all DDP ranks)
     "strands": 128,         # strands drawn from each window (all when fewer)
     "lr": 1e-3,             # Adam learning rate at the start

@@ -7,7 +7,10 @@ colliders, at their poses of the frame), clamped to ±``reach`` and divided by i
 collider's outward normal in the head frame (zero farther than ``reach``). The loss adds
 ``penetration_weight`` × the mean squared depth inside the colliders (mm², Σ_c max(0, −σ_c)² over
 the vertices past the pinned prefix) of the prediction, so the model learns to keep the hair out
-of the solids, not only to follow the reference.
+of the solids, not only to follow the reference. The default weight 10 was chosen on a toy case
+(sphere head, a sphere swept through 256 strands, 1,500 steps): against weight 1 it cut the mean
+squared depth from 0.15 to 0.04 mm² and the deepest vertex from 27 to 16 mm for +1.4 % mean
+vertex error.
 """
 from __future__ import annotations
 
@@ -30,7 +33,7 @@ class Collision(NeighbourhoodMethod):
     name = "collision"
     needs_scene = True
     stat_names = ("penetration_mm2", "vertex_mm2")
-    MODEL_DEFAULTS = {**NeighbourhoodMethod.MODEL_DEFAULTS, "reach": 0.02, "penetration_weight": 1.0}
+    MODEL_DEFAULTS = {**NeighbourhoodMethod.MODEL_DEFAULTS, "reach": 0.02, "penetration_weight": 10.0}
 
     def extra_dim(self, meta: dict) -> int:
         return 4 * meta["particles"]

@@ -12,7 +12,8 @@ residual:
 
 The first frame of a stream (or of a training window) has no previous frame: its motion is zero
 and h_0 = 0. Training windows are ``window`` frames; the first ``burn_in`` of them only warm the
-state (no loss). ``predict`` is the causal stream ``reset`` + ``step`` run over the sample, so
+state (no loss). The loss is the mean squared vertex error plus ``velocity_weight`` × the mean
+squared error of the frame-to-frame motion (head frame, mm²). ``predict`` is the causal stream ``reset`` + ``step`` run over the sample, so
 both give the same numbers. The model is groom-agnostic like ``agnostic`` (same N).
 """
 from __future__ import annotations
@@ -116,13 +117,14 @@ class Temporal(LearnedInterpolator):
 
     Model options: ``k`` guides per strand, ``hidden`` width of the MLPs, ``state`` GRU state
     size, ``scale`` and ``motion_scale`` (m), ``window`` frames per training window of which
-    the first ``burn_in`` carry no loss. Training options: :data:`~baselines.learned.base.TRAIN_DEFAULTS`.
+    the first ``burn_in`` carry no loss, ``velocity_weight`` of the motion term of the loss. Training options: :data:`~baselines.learned.base.TRAIN_DEFAULTS`.
     """
 
     name = "temporal"
     causal = True
     MODEL_DEFAULTS = {"k": 4, "hidden": 192, "state": 64, "scale": 0.05, "motion_scale": 0.01, "window": 16,
-                      "burn_in": 4}
+                      "burn_in": 4, "velocity_weight": 5.0}
+    stat_names = ("velocity_mm2", "vertex_mm2")
     TRAIN_OVERRIDES = {"batch": 8, "strands": 64, "valid_windows": 24, "valid_strands": 256}
 
     def __init__(self, device=None, checkpoint=None, **options):
@@ -168,8 +170,12 @@ class Temporal(LearnedInterpolator):
         w, nb, n = sk.shape[0], sk.shape[1], sk.shape[2]
         res = model.residual(enc, torch.stack(hs)).view(w, nb, n, 3) * b.scale * b.mask[strands]
         keep = slice(self.options["burn_in"], None)
-        loss = mm2((sk + res)[keep], to_head(item["positions"][:, strands], rot, trans)[keep])
-        return loss, {"vertex_mm2": loss.detach()}
+        pred, ref = (sk + res)[keep], to_head(item["positions"][:, strands], rot, trans)[keep]
+        loss = mm2(pred, ref)
+        # frame-to-frame motion in the head frame against the reference's (mm² per frame²)
+        vel = mm2(pred[1:] - pred[:-1], ref[1:] - ref[:-1]) if pred.shape[0] > 1 else loss.new_zeros(())
+        total = loss + self.options["velocity_weight"] * vel
+        return total, {"vertex_mm2": loss.detach(), "velocity_mm2": vel.detach()}
 
     def _check(self, sample: dict, model) -> tuple:
         t, g, s, n = check_sample(sample, self.name)
