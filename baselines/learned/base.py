@@ -3,15 +3,17 @@
 a method under its built-in name.
 
 A subclass sets ``name``, ``window`` (frames per training window), ``needs_scene`` (training
-items need the colliders), ``stat_names`` (what its loss reports), ``MODEL_DEFAULTS`` (the
-options that define its model) and implements:
+items need the colliders), ``stat_names`` (what its loss reports), ``MODEL_DEFAULTS`` (its own
+options: they are part of the checkpoint key), ``TRAIN_OVERRIDES`` (its defaults of training
+options) and implements:
 
 - ``data_meta(item) -> dict``: what the model is built from, read from the first training item;
 - ``meta_key(meta)``: a JSON-able digest of it (for the checkpoint key);
 - ``make_model(meta) -> nn.Module``: the untrained model (its output starts at the skinning);
 - ``window_loss(model, item, strands) -> (loss, stats)``: the mean loss (mm²) of one window
   (a training item on the device, with colliders when ``needs_scene``) over the strands (B,);
-- ``predict(sample)``.
+- ``predict(sample)``;
+- optionally ``unsuitable(item, first) -> str``: why a validation window cannot score it.
 """
 from __future__ import annotations
 
