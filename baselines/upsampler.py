@@ -11,7 +11,7 @@ The last layer starts at zero, so an untrained upsampler is exactly the skinning
 """
 from __future__ import annotations
 
-from typing import Optional
+from typing import Optional, Union
 
 import torch
 from torch import nn
@@ -29,19 +29,26 @@ class GuideUpsampler(nn.Module):
         rest_guides: (G, N, 3) metres, guide rest shapes (same N).
         k: guides per strand. hidden, layers: MLP width and number of hidden layers.
         scale: length scale (m) dividing the inputs and multiplying the output.
-        pinned: particles from the root that get no residual (they follow the head).
+        pinned: particles from the root that get no residual (they follow the head): one count
+            for every strand, or (S,) long, one per strand.
 
     Call: ``up(guides (..., G, N, 3), rotation (..., 3, 3), translation (..., 3))`` →
     dense (..., S, N, 3) metres, world frame.
     """
 
     def __init__(self, rest_dense: torch.Tensor, rest_guides: torch.Tensor, k: int = 4, hidden: int = 192,
-                 layers: int = 3, scale: float = 0.05, pinned: int = 2):
+                 layers: int = 3, scale: float = 0.05, pinned: Union[int, torch.Tensor] = 2):
         super().__init__()
         self.skin = LinearHairSkinning(rest_dense, rest_guides, k=k)
         s, n, _ = self.skin.rest_dense.shape
         k = self.skin.guide_index.shape[1]
-        self.scale, self.pinned, self.k, self.n = float(scale), int(pinned), k, n
+        if isinstance(pinned, torch.Tensor) and pinned.dim() > 0:
+            if tuple(pinned.shape) != (s,):
+                raise ValueError(f"pinned must be one count or (S,) = ({s},) counts; got {tuple(pinned.shape)}")
+            pinned = pinned.detach().cpu().long()
+        else:
+            pinned = int(pinned)
+        self.scale, self.pinned, self.k, self.n = float(scale), pinned, k, n
         rd = self.skin.rest_dense
         rel = (rd - rd[:, :1]).reshape(s, -1) / scale
         groots = (self.skin.rest_guides[self.skin.guide_index, 0] - rd[:, None, 0]).reshape(s, -1) / scale
@@ -55,9 +62,11 @@ class GuideUpsampler(nn.Module):
         nn.init.zeros_(last.weight)
         nn.init.zeros_(last.bias)
         self.mlp = nn.Sequential(*mods, last)
-        mask = torch.ones(n, 1)
-        mask[:pinned] = 0
-        self.register_buffer("residual_mask", mask)
+        if isinstance(pinned, int):
+            mask = (torch.arange(n) >= pinned).to(rd.dtype)[:, None]  # (N, 1)
+        else:
+            mask = (torch.arange(n)[None, :] >= pinned[:, None]).to(rd.dtype)[..., None]  # (S, N, 1)
+        self.register_buffer("residual_mask", mask.to(rd.device))
 
     def strands_forward(self, guides_k: torch.Tensor, strands: torch.Tensor, rotation: torch.Tensor,
                         translation: torch.Tensor, skinned: Optional[torch.Tensor] = None) -> torch.Tensor:
@@ -78,7 +87,8 @@ class GuideUpsampler(nn.Module):
         dg = (local_g - rg).flatten(1) / self.scale
         ds = (local_s - self.skin.rest_dense.to(guides_k)[strands]).flatten(1) / self.scale
         feats = torch.cat((dg, ds, self.static_features.to(guides_k)[strands]), 1)
-        res = self.mlp(feats).view(-1, self.n, 3) * self.scale * self.residual_mask.to(guides_k)
+        mask = self.residual_mask if self.residual_mask.dim() == 2 else self.residual_mask[strands]
+        res = self.mlp(feats).view(-1, self.n, 3) * self.scale * mask.to(guides_k)
         return skinned + res @ r.transpose(-1, -2)
 
     def forward(self, guides: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:

@@ -136,15 +136,13 @@ def test_penetration_with_per_frame_poses():
     assert metrics.ms_per_frame(lambda i: None, 3) >= 0.0
 
 
-# -- data, upsampler, training --------------------------------------------------------------
-import json  # noqa: E402
-import os  # noqa: E402
+# -- data, upsampler, the legacy training alias ---------------------------------------------
+# (the training loop itself, its resumption and DDP: tests/test_learned.py)
 from pathlib import Path  # noqa: E402
 
-import torch.multiprocessing as mp  # noqa: E402
-
 from baselines.data import HairDataset, generate_dataset  # noqa: E402
-from baselines.upsampler import GuideUpsampler, load_checkpoint  # noqa: E402
+from baselines.learned.train import load_blob  # noqa: E402
+from baselines.upsampler import GuideUpsampler  # noqa: E402
 
 _ROOT = Path(__file__).resolve().parents[1]
 
@@ -162,8 +160,7 @@ def tiny_data(tmp_path_factory):
 
 def _args(data, out, steps, extra=()):
     return ["--data", data, "--out", out, "--steps", str(steps), "--batch", "256", "--guides", "8",
-            "--lr", "3e-3", "--dtype", "float64", "--hidden", "32", "--layers", "2", "--no-progress",
-            "--checkpoint-every", "1000", "--threads", "0", *extra]
+            "--lr", "3e-3", "--hidden", "32", "--layers", "2", "--no-progress", "--threads", "0", *extra]
 
 
 def test_dataset_reader(tiny_data):
@@ -189,50 +186,28 @@ def test_upsampler_is_small_and_starts_at_skinning(tiny_data):
     out = up(x[:4, g], rot[:4], trans[:4])
     assert out.shape == (4, 48, 8, 3)
     assert torch.equal(out, up.skin(x[:4, g], rot[:4]))
+    # per-strand pinned counts: no residual on each strand's own pinned prefix
+    pinned = torch.randint(1, 4, (48,))
+    up = GuideUpsampler(ds.rest, ds.rest[g], k=4, pinned=pinned)
+    torch.nn.init.normal_(up.mlp[-1].weight)
+    moved = up(x[:2, g], rot[:2], trans[:2]) - up.skin(x[:2, g], rot[:2])
+    still = torch.arange(8)[None, :] < pinned[:, None]
+    assert moved.norm(dim=-1)[:, still].max() == 0 and moved.norm(dim=-1)[:, ~still].min() > 0
+    with pytest.raises(ValueError, match=r"one count or \(S,\)"):
+        GuideUpsampler(ds.rest, ds.rest[g], pinned=torch.ones(3, dtype=torch.long))
 
 
-def test_upsampler_trains_saves_reloads_resumes(tiny_data, tmp_path):
+def test_train_upsampler_alias(tiny_data, tmp_path):
     tu = _train_module()
-    a = tu.main(_args(tiny_data, str(tmp_path / "a.pt"), 30))
-    h = a["history"]
+    res = tu.main(_args(tiny_data, str(tmp_path / "a.pt"), 30))
+    h = res["history"]
     assert len(h) == 30 and sum(h[-5:]) < 0.7 * sum(h[:5])
-    model, blob = load_checkpoint(str(tmp_path / "a.pt"))
     ds = HairDataset(tiny_data)
     x, rot, trans = ds.frames()
-    g = blob["guides"]
-    assert torch.equal(model(x[:3, g].double(), rot[:3].double(), trans[:3].double()),
-                       a["model"](x[:3, g].double(), rot[:3].double(), trans[:3].double()))
-    # resumption: 12 steps, then resume to 30, equals 30 straight steps
-    b_path = str(tmp_path / "b.pt")
-    tu.main(_args(tiny_data, b_path, 12))
-    b = tu.main(_args(tiny_data, b_path, 30, ["--resume"]))
-    assert b["history"][:12] == h[:12]
-    assert b["history"] == pytest.approx(h, rel=1e-10, abs=1e-12)
-    for p, q in zip(a["model"].parameters(), b["model"].parameters()):
-        assert torch.allclose(p, q, rtol=1e-9, atol=1e-12)
-
-
-def _ddp_worker(rank, world, argv, store):
-    os.environ.update(RANK=str(rank), WORLD_SIZE=str(world), LOCAL_RANK=str(rank), MASTER_ADDR="127.0.0.1",
-                      GLOO_SOCKET_IFNAME="lo")
-    _train_module().main(argv + ["--init-method", f"file://{store}"])
-
-
-def test_ddp_two_processes_match_one(tiny_data, tmp_path):
-    tu = _train_module()
-    one = tu.main(_args(tiny_data, str(tmp_path / "one.pt"), 8))["history"]
-    hist = tmp_path / "two.json"
-    argv = _args(tiny_data, str(tmp_path / "two.pt"), 8, ["--history", str(hist)])
-    # file:// rendezvous (no TCP store); gloo on the loopback interface only
-    mp.start_processes(_ddp_worker, args=(2, argv, str(tmp_path / "store")), nprocs=2, join=True,
-                       start_method="spawn")
-    two = json.loads(hist.read_text())
-    assert len(two) == 8
-    assert two == pytest.approx(one, rel=1e-9, abs=1e-12)
-    m1, _ = load_checkpoint(str(tmp_path / "one.pt"))
-    m2, _ = load_checkpoint(str(tmp_path / "two.pt"))
-    for p, q in zip(m1.parameters(), m2.parameters()):
-        assert torch.allclose(p, q, rtol=1e-8, atol=1e-12)
+    blob = load_blob(str(tmp_path / "a.pt"))
+    assert blob["method"] == "upsampler" and blob["finished"] and torch.equal(blob["guides"], ds.fps_order[:8])
+    up = res["model"]
+    assert isinstance(up, GuideUpsampler) and up(x[:3, ds.fps_order[:8]], rot[:3], trans[:3]).shape == (3, 48, 8, 3)
 
 
 # -- training on an `ams-torch generate` dataset ---------------------------------------------------
@@ -270,9 +245,9 @@ def test_reader_and_training_on_a_generated_dataset(generated, tmp_path):
     res = tu.main(_args(out, str(tmp_path / "g.pt"), 20, ["--split", "train"]))
     h = res["history"]
     assert len(h) == 20 and all(np.isfinite(h)) and sum(h[-5:]) < 0.8 * sum(h[:5])
-    _, blob = load_checkpoint(str(tmp_path / "g.pt"))
+    blob = load_blob(str(tmp_path / "g.pt"))
     assert torch.equal(blob["guides"], ds.fps_order[:8])
-    with pytest.raises(ValueError, match="--guides 32: the dataset .* offers 16 guide strands"):
+    with pytest.raises(ValueError, match="--guides 32: the dataset offers 16 guide strands"):
         tu.main(_args(out, str(tmp_path / "h.pt"), 1, ["--guides", "32"]))
 
 
