@@ -33,7 +33,7 @@ from typing import Callable, Dict, List, Optional, Sequence
 
 import torch
 
-from baselines.protocol import MethodError, check_prediction, describe, resolve_method, safe_name
+from baselines.protocol import MethodError, NotApplicable, check_prediction, describe, resolve_method, safe_name
 from baselines.scene import make_sample
 
 __all__ = ["run", "resolve_source", "suite_path", "dataset_info", "provenance", "BenchError", "SUITES_DIR",
@@ -372,10 +372,14 @@ def _score_split(method, spec: str, name: str, path: Path, split: str, g: int, s
             dense = dense_ds[i]["guide_positions"].to(ref) if dense_ds is not None else None
             new += _reference_rows(name, path, split, g, src, sample, ref, dense)
         if key not in done:
-            pred, ms = _predict(method, spec, sample, device)
-            new.append({"dataset": name, "guides": g, "guide_source": src, "split": split, "sequence": seq,
-                        **sequence_metrics(pred.to(ref), ref, sample), "ms_per_frame_method": ms, **describe(method),
-                        "method": spec})
+            base = {"dataset": name, "guides": g, "guide_source": src, "split": split, "sequence": seq}
+            try:
+                pred, ms = _predict(method, spec, sample, device)
+            except NotApplicable as err:  # by design (e.g. a model bound to its training groom)
+                new.append({**base, **describe(method), "method": spec, "not_applicable": str(err)})
+            else:
+                new.append({**base, **sequence_metrics(pred.to(ref), ref, sample), "ms_per_frame_method": ms,
+                            **describe(method), "method": spec})
         for row in new:
             row.update(tags)
             results["rows"].append(row)

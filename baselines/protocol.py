@@ -55,7 +55,7 @@ from typing import Callable, Dict, Optional
 import torch
 
 __all__ = ["Interpolator", "BUILTINS", "ENTRY_POINT_GROUP", "register", "resolve_method", "stream",
-           "check_prediction", "SAMPLE_KEYS", "MethodError", "safe_name", "frame_of", "describe"]
+           "check_prediction", "SAMPLE_KEYS", "MethodError", "NotApplicable", "safe_name", "frame_of", "describe"]
 
 ENTRY_POINT_GROUP = "ams_torch.interpolators"
 #: the keys every sample holds (see the module docstring)
@@ -67,6 +67,12 @@ BUILTINS: Dict[str, Callable[..., "Interpolator"]] = {}
 
 class MethodError(ValueError):
     """A method cannot be resolved or returned something that is not a dense prediction."""
+
+
+class NotApplicable(MethodError):
+    """Raised by ``predict`` when the method does not apply to a sample by design (e.g. a model
+    bound to the groom it was trained on, given a held-out groom): the benchmark records the
+    sequence as not applicable, with the reason, instead of failing."""
 
 
 class Interpolator(ABC):

@@ -41,11 +41,19 @@ def summarise(rows: Sequence[dict], by: Sequence[str]) -> Dict[tuple, dict]:
     """Aggregate per-sequence rows (:func:`baselines.metrics.aggregate`) grouped by the keys ``by``;
     the method's ms/frame is averaged too."""
     groups: Dict[tuple, List[dict]] = defaultdict(list)
+    skipped: Dict[tuple, int] = defaultdict(int)
     for r in rows:
-        groups[tuple(r[k] for k in by)].append(r)
+        if "not_applicable" in r:  # the method does not apply to that sequence (said in the row)
+            skipped[tuple(r[k] for k in by)] += 1
+        else:
+            groups[tuple(r[k] for k in by)].append(r)
     out = {}
+    for k in skipped:
+        if k not in groups:
+            out[k] = {"sequences": 0, "not_applicable": skipped[k]}
     for k, rs in groups.items():
         agg = aggregate(rs)
+        agg["not_applicable"] = skipped.get(k, 0)
         ms = [r["ms_per_frame_method"] for r in rs if r.get("ms_per_frame_method") is not None]
         agg["ms_per_frame_method"] = sum(ms) / len(ms) if ms else None
         out[k] = agg
@@ -54,11 +62,12 @@ def summarise(rows: Sequence[dict], by: Sequence[str]) -> Dict[tuple, dict]:
 
 def _table(entries: List[tuple]) -> List[str]:
     """entries: (label cells, aggregated metrics) → markdown lines."""
-    head = ["guides", "method"] + [h for _, h, _ in COLUMNS] + ["sequences"]
+    head = ["guides", "method"] + [h for _, h, _ in COLUMNS] + ["sequences", "n/a"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for cells, m in entries:
         vals = [_fmt(k, f, m.get(k)) for k, _, f in COLUMNS]
-        lines.append("| " + " | ".join(list(cells) + vals + [str(m.get("sequences", ""))]) + " |")
+        lines.append("| " + " | ".join(list(cells) + vals + [str(m.get("sequences", "")),
+                                                             str(m.get("not_applicable", 0) or "")]) + " |")
     return lines
 
 
@@ -92,7 +101,8 @@ def leaderboard(results: dict) -> str:
         out += [f"### Guides: {'simulated alone' if src == 'alone' else 'the dense run copies'}", ""]
         entries = []
         for g in sorted({k[1] for k in overall if k[0] == src}):
-            ranked = sorted((m for m in methods if (src, g, m) in overall), key=lambda m: overall[(src, g, m)]["mean_mm"])
+            ranked = sorted((m for m in methods if (src, g, m) in overall),
+                            key=lambda m: overall[(src, g, m)].get("mean_mm", math.inf))
             for m in [r for r in REFERENCE_ROWS if (src, g, r) in overall] + ranked:
                 entries.append(((str(g), m), overall[(src, g, m)]))
         out += _table(entries) + [""]

@@ -34,7 +34,7 @@ def comparisons(results: dict, baseline: str = "skinning") -> list:
     for m in [m for m in dict.fromkeys(r["method"] for r in rows) if m not in REFERENCE_ROWS and m != baseline]:
         wins, losses = [], []
         for (split, g, mm), agg in sorted(per.items()):
-            if mm != m or (split, g, baseline) not in per:
+            if mm != m or (split, g, baseline) not in per or "mean_mm" not in agg:
                 continue
             b = per[(split, g, baseline)]
             cell = f"{split} G={g}: {agg['mean_mm']:.2f} vs {b['mean_mm']:.2f} mm ({_pct(agg['mean_mm'], b['mean_mm'])})"

@@ -1,18 +1,10 @@
-"""Test helpers of the learned baselines: benchmark items from today's ``HairSequenceDataset``.
-
-:class:`DenseGuides` yields the items ``HairSequenceDataset(..., guides=G)`` yields (see
-``baselines/protocol.py``), with the dense run's own copies of the guides as the guide input:
-``positions`` (W, S, N, 3), ``guide_positions`` (W, G, N, 3) = ``positions[:, guide_indices[:G]]``,
-``guide_index`` (G,), ``rest_positions`` (S, N, 3), ``num_pinned`` (S,), ``rotations``,
-``translations``, the collider poses when stored, ``sequence`` and ``start``.
-:func:`toy_dataset` generates a tiny dataset with ``ams-torch generate``.
-"""
+"""Test helpers of the learned baselines: :func:`toy_dataset` generates a tiny dataset with
+``ams-torch generate``; :func:`DenseGuides` opens it as the benchmark's items (see
+``baselines/protocol.py``) with the dense run's own copies of the guides as the guide input."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
-import torch
 
 from ams_torch.apps.data import HairSequenceDataset
 
@@ -90,44 +82,8 @@ def toy_dataset(out, *, sequences=8, frames=16, batch=2, strands=48, particles=8
     return str(out)
 
 
-class DenseGuides(HairSequenceDataset):
-    """A ``HairSequenceDataset`` whose items are the benchmark's items with ``G`` guides (the dense
-    run's copies). Extra keyword arguments go to ``HairSequenceDataset``."""
-
-    def __init__(self, root, guides: int, **kwargs):
-        kwargs.setdefault("fields", None)
-        super().__init__(root, **kwargs)
-        have = set(self.fields)
-        if "positions" not in have:
-            raise ValueError("DenseGuides needs the dense positions")
-        g0 = self._file(self.sequences[0][0])[self.sequences[0][1]]
-        for k in ("collider_rotations", "collider_translations"):
-            if k in g0 and k not in have:
-                self.fields.append(k)
-        self.fields = [k for k in self.fields if k != "guide_positions"]
-        self.guides = int(guides)
-        self._static = {}
-
-    def static(self, index: int) -> dict:
-        """rest_positions, guide_index and num_pinned of sequence ``index`` (cached)."""
-        if index not in self._static:
-            from ams_torch.apps.scene.schema import make_params
-            from ams_torch.sim.model import pinned_counts
-
-            arr = self.sequence_arrays(index)
-            order = torch.from_numpy(arr["guide_indices"]).long()
-            if self.guides > order.numel():
-                raise ValueError(f"the dataset stores {order.numel()} guides; asked for {self.guides}")
-            rest = torch.from_numpy(arr["rest_positions"]).to(self.dtype)
-            fi, name = self._slot(index)
-            scene = json.loads(self._file(fi)[name].attrs["scene"])
-            self._static[index] = {"rest_positions": rest, "guide_index": order[:self.guides],
-                                   "num_pinned": pinned_counts(make_params(scene), rest.double())}
-        return self._static[index]
-
-    def __getitem__(self, i):
-        item = super().__getitem__(i)
-        st = self.static(item["sequence"])
-        item.update({k: v.clone() for k, v in st.items()})
-        item["guide_positions"] = item["positions"][:, st["guide_index"]].clone()
-        return item
+def DenseGuides(root, guides: int, **kwargs) -> HairSequenceDataset:
+    """The benchmark's items with ``G`` guides, the dense run's copies as the guide input
+    (``HairSequenceDataset(root, guides=G, guide_source="dense")``). Extra keyword arguments go to
+    ``HairSequenceDataset``."""
+    return HairSequenceDataset(root, guides=int(guides), guide_source="dense", **kwargs)

@@ -1,8 +1,6 @@
 """Guide-strand baselines: guide selection, skinning, metrics, upsampler training and DDP."""
-import numpy as np
 import pytest
 import torch
-from conftest import load_script
 
 import ams_torch as at
 from ams_torch.geometry.pose import axis_angle_to_matrix
@@ -136,130 +134,28 @@ def test_penetration_with_per_frame_poses():
     assert metrics.ms_per_frame(lambda i: None, 3) >= 0.0
 
 
-# -- data, upsampler, the legacy training alias ---------------------------------------------
-# (the training loop itself, its resumption and DDP: tests/test_learned.py)
-from pathlib import Path  # noqa: E402
-
-from baselines.data import HairDataset, generate_dataset  # noqa: E402
-from baselines.learned.train import load_blob  # noqa: E402
+# -- the upsampler's network (its training: tests/test_learned.py) -------------------------------
 from baselines.upsampler import GuideUpsampler  # noqa: E402
 
-_ROOT = Path(__file__).resolve().parents[1]
 
-
-def _train_module():
-    return load_script("train_upsampler")
-
-
-@pytest.fixture(scope="module")
-def tiny_data(tmp_path_factory):
-    path = tmp_path_factory.mktemp("baselines") / "tiny.h5"
-    generate_dataset(str(path), strands=48, particles=8, sequences=2, frames=8, seed=1)
-    return str(path)
-
-
-def _args(data, out, steps, extra=()):
-    return ["--data", data, "--out", out, "--steps", str(steps), "--batch", "256", "--guides", "8",
-            "--lr", "3e-3", "--hidden", "32", "--layers", "2", "--no-progress", "--threads", "0", *extra]
-
-
-def test_dataset_reader(tiny_data):
-    ds = HairDataset(tiny_data, window=3, stride=2)
-    assert ds.names == ["seq_000", "seq_001"] and len(ds) == 2 * 3
-    item = ds[4]
-    assert item["positions"].shape == (3, 48, 8, 3) and item["sequence"] == 1 and item["start"] == 2
-    assert torch.isfinite(item["positions"]).all()
-    # the dense strands moved (the head shook) and roots follow the head rigidly
-    x, rot, trans = ds.frames()
-    assert (x - ds.rest).norm(dim=-1).max() > 1e-3
-    roots = ds.rest[:, 0] @ rot.transpose(-1, -2) + trans[:, None]
-    assert (roots - x[:, :, 0]).abs().max() < 1e-5
-    assert torch.equal(ds.fps_order[:8], select_guides(ds.rest[:, 0], 8))
-
-
-def test_upsampler_is_small_and_starts_at_skinning(tiny_data):
-    ds = HairDataset(tiny_data)
-    x, rot, trans = ds.frames()
-    g = ds.fps_order[:8]
-    up = GuideUpsampler(ds.rest, ds.rest[g], k=4)
+def test_upsampler_is_small_and_starts_at_skinning(groom):
+    rest = groom.float()
+    g = select_guides(rest[:, 0], 8)
+    gen = torch.Generator().manual_seed(0)
+    rot = torch.stack([axis_angle_to_matrix(0.3 * torch.randn(3, generator=gen)) for _ in range(4)])
+    trans = 0.02 * torch.randn(4, 3, generator=gen)
+    x = torch.einsum("tij,snj->tsni", rot, rest) + trans[:, None, None] + 0.003 * torch.randn((4,) + rest.shape, generator=gen)
+    up = GuideUpsampler(rest, rest[g], k=4)
     assert sum(p.numel() for p in up.parameters()) < 300_000
-    out = up(x[:4, g], rot[:4], trans[:4])
-    assert out.shape == (4, 48, 8, 3)
-    assert torch.equal(out, up.skin(x[:4, g], rot[:4]))
+    out = up(x[:, g], rot, trans)
+    assert out.shape == (4, rest.shape[0], rest.shape[1], 3)
+    assert torch.equal(out, up.skin(x[:, g], rot))
     # per-strand pinned counts: no residual on each strand's own pinned prefix
-    pinned = torch.randint(1, 4, (48,))
-    up = GuideUpsampler(ds.rest, ds.rest[g], k=4, pinned=pinned)
+    pinned = torch.randint(1, 4, (rest.shape[0],), generator=gen)
+    up = GuideUpsampler(rest, rest[g], k=4, pinned=pinned)
     torch.nn.init.normal_(up.mlp[-1].weight)
     moved = up(x[:2, g], rot[:2], trans[:2]) - up.skin(x[:2, g], rot[:2])
-    still = torch.arange(8)[None, :] < pinned[:, None]
+    still = torch.arange(rest.shape[1])[None, :] < pinned[:, None]
     assert moved.norm(dim=-1)[:, still].max() == 0 and moved.norm(dim=-1)[:, ~still].min() > 0
     with pytest.raises(ValueError, match=r"one count or \(S,\)"):
-        GuideUpsampler(ds.rest, ds.rest[g], pinned=torch.ones(3, dtype=torch.long))
-
-
-def test_train_upsampler_alias(tiny_data, tmp_path):
-    tu = _train_module()
-    res = tu.main(_args(tiny_data, str(tmp_path / "a.pt"), 30))
-    h = res["history"]
-    assert len(h) == 30 and sum(h[-5:]) < 0.7 * sum(h[:5])
-    ds = HairDataset(tiny_data)
-    x, rot, trans = ds.frames()
-    blob = load_blob(str(tmp_path / "a.pt"))
-    assert blob["method"] == "upsampler" and blob["finished"] and torch.equal(blob["guides"], ds.fps_order[:8])
-    up = res["model"]
-    assert isinstance(up, GuideUpsampler) and up(x[:3, ds.fps_order[:8]], rot[:3], trans[:3]).shape == (3, 48, 8, 3)
-
-
-# -- training on an `ams-torch generate` dataset ---------------------------------------------------
-@pytest.fixture(scope="module")
-def generated(tmp_path_factory):
-    """datasets/upsampler_tiny.toml made small: 4 sequences of 6 frames, 48 strands, 16 guides stored."""
-    from ams_torch.apps.datagen import generate
-    from ams_torch.apps.recipe import load_recipe
-
-    r = load_recipe(str(_ROOT / "datasets" / "upsampler_tiny.toml"),
-                    {"sequences": 4, "frames": 6, "batch": 2, "store": {"guides": 16},
-                     "groom": {"kind": "sphere", "strands": 48, "particles": 8, "length": 0.15},
-                     "split": {"train": 0.5, "valid": 0.0, "test": 0.5}})
-    out = tmp_path_factory.mktemp("generated") / "up"
-    generate(r, str(out), progress=False, log=lambda s: None)
-    return str(out), r
-
-
-def test_reader_and_training_on_a_generated_dataset(generated, tmp_path):
-    from ams_torch.apps.data import HairSequenceDataset
-
-    out, r = generated
-    ds = HairDataset(out)
-    stored = HairSequenceDataset(out).sequence_arrays(0)
-    assert ds.names == [f"seq_{i:06d}" for i in range(4)] and ds.rest.shape == (48, 8, 3)
-    assert torch.equal(ds.fps_order, torch.from_numpy(stored["guide_indices"])) and len(ds.fps_order) == 16
-    assert torch.equal(ds.fps_order[:8], select_guides(ds.rest[:, 0], 8))  # the stored order is the FPS order
-    x, rot, trans = ds.frames()
-    assert x.shape == (4 * 6, 48, 8, 3) and rot.shape == (24, 3, 3)
-    roots = ds.rest[:, 0] @ rot.transpose(-1, -2) + trans[:, None]
-    assert (roots - x[:, :, 0]).abs().max() < 1e-5  # positions in the world, rest in the head frame
-    train = HairDataset(out, split="train")
-    assert train.names == [f"seq_{i:06d}" for i in range(4) if r.sequence_split(i) == "train"] and len(train.names) == 2
-    tu = _train_module()
-    res = tu.main(_args(out, str(tmp_path / "g.pt"), 20, ["--split", "train"]))
-    h = res["history"]
-    assert len(h) == 20 and all(np.isfinite(h)) and sum(h[-5:]) < 0.8 * sum(h[:5])
-    blob = load_blob(str(tmp_path / "g.pt"))
-    assert torch.equal(blob["guides"], ds.fps_order[:8])
-    with pytest.raises(ValueError, match="--guides 32: the dataset offers 16 guide strands"):
-        tu.main(_args(out, str(tmp_path / "h.pt"), 1, ["--guides", "32"]))
-
-
-def test_generated_dataset_of_several_grooms_is_refused(tmp_path):
-    from ams_torch.apps.datagen import generate
-    from ams_torch.apps.recipe import load_recipe
-
-    r = load_recipe(str(_ROOT / "datasets" / "upsampler_tiny.toml"),
-                    {"sequences": 2, "frames": 2, "batch": 1, "store": {"guides": 4},
-                     "groom": {"kind": "sphere", "strands": 12, "particles": 6, "length": {"uniform": [0.1, 0.2]}}})
-    out = str(tmp_path / "two")
-    generate(r, out, progress=False, log=lambda s: None)
-    with pytest.raises(ValueError, match=r"2 different grooms \(batch groups \[0, 1\]\)"):
-        HairDataset(out)
-    assert HairDataset(out, sequences=["seq_000001"]).names == ["seq_000001"]
+        GuideUpsampler(rest, rest[g], pinned=torch.ones(3, dtype=torch.long))

@@ -41,8 +41,9 @@ def make_wrong():
 @pytest.fixture(scope="module")
 def mini_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("bench") / "mini"
-    argv = ["bench-interp", "mini", "--methods", "rigid,skinning,skinning+pushout,test_bench_interp:make_plugin",
-            "--guides", "8,16", "--out", str(out), "--cost-sizes", "100", "--cost-frames", "1", "--quiet"]
+    argv = ["bench-interp", "mini", "--methods", "rigid,skinning,skinning+pushout,test_bench_interp:make_plugin,"
+            "agnostic,upsampler", "--guides", "8,16", "--out", str(out), "--cost-sizes", "100", "--cost-frames", "1",
+            "--train", "--option", "agnostic.steps=10", "--option", "upsampler.steps=10", "--quiet"]
     assert main(argv) == 0
     return out, argv
 
@@ -64,6 +65,8 @@ def test_mini_suite_end_to_end(mini_run):
             assert len(got) == tests, (m, g)
     by = {(r["method"], r["guides"], r["sequence"]): r for r in rows}
     for (m, g, q), r in by.items():
+        if "not_applicable" in r:
+            continue
         assert r["mean_mm"] >= 0 and r["p95_mm"] <= r["max_mm"] + 1e-9
         if m == "skinning+pushout":  # the push-out never adds penetration, and leaves none deeper than 0.1 mm
             assert r["head_inside_share"] <= by[("skinning", g, q)]["head_inside_share"]
@@ -75,6 +78,12 @@ def test_mini_suite_end_to_end(mini_run):
     mean = lambda m, g: sum(r["mean_mm"] for r in rows if r["method"] == m and r["guides"] == g)  # noqa: E731
     assert mean("skinning", 16) < mean("skinning", 8)
     assert {r["holdout"] for r in rows} >= {"groom_seed", "motion"}
+    # learned: trained on the train split; the upsampler is bound to its groom: n/a on the held-out groom
+    assert all("mean_mm" in r for r in rows if r["method"] == "agnostic")
+    up = [r for r in rows if r["method"] == "upsampler"]
+    assert {r["holdout"] for r in up if "not_applicable" in r} == {"groom_seed"}
+    assert all("mean_mm" in r for r in up if r["holdout"] != "groom_seed")
+    assert (out / "models" / "mini" / "agnostic-G8.pt").exists()
     board = (out / "leaderboard.md").read_text()
     assert "test_bench_interp:make_plugin" in board and "held out: groom_seed" in board
     assert (out / "error_vs_guides.png").stat().st_size > 0

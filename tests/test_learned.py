@@ -258,8 +258,11 @@ def test_clear_errors(toy, groom_b, trained):
 
 def test_learned_methods_are_builtins():
     for name in METHODS:
-        m = resolve_method(name, device="cpu", steps=3, not_an_option=1)  # the benchmark's options are filtered
+        # the benchmark's context is given where the factory takes it; the user's options must all be taken
+        m = resolve_method(name, {"device": "cpu", "not_in_the_context": 1}, steps=3)
         assert m.learned and m.options["steps"] == 3 and str(m.device) == "cpu"
+        with pytest.raises(MethodError, match="takes no option"):
+            resolve_method(name, {"device": "cpu"}, not_an_option=1)
     assert set(TRAIN_DEFAULTS) <= set(Agnostic.defaults())
 
 
@@ -296,7 +299,7 @@ def test_train_interp_end_to_end(toy, tmp_path):
     assert again["result"]["steps"] == 9 and again["result"]["history"]["train"][:6] == hist["train"]
     mod.main(_argv(toy, out, steps=2, extra=["--restart"]))
     assert len(json.loads((out / "history.json").read_text())["train"]) == 2
-    with pytest.raises(ValueError, match=r"unknown option\(s\) \['hiden'\]"):
+    with pytest.raises(ValueError, match=r"takes no option\(s\) \['hiden'\]"):
         mod.main(_argv(toy, tmp_path / "x", extra=["--option", "hiden=3"]))
 
 

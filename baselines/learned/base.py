@@ -17,6 +17,8 @@ options) and implements:
 """
 from __future__ import annotations
 
+import os
+
 import inspect
 import math
 from abc import abstractmethod
@@ -151,7 +153,12 @@ class LearnedInterpolator(Interpolator):
         return self
 
     def trained(self) -> nn.Module:
-        """The model, or a MethodError when neither fit nor load ran."""
+        """The model: fitted, loaded, or else loaded now from the ``checkpoint`` the method was made
+        with when that file holds a finished training (the benchmark's protocol); a MethodError
+        when there is none."""
+        if self.model is None and self.checkpoint and os.path.exists(self.checkpoint):
+            if load_blob(self.checkpoint).get("finished"):
+                self.load(self.checkpoint)
         if self.model is None:
             raise MethodError(f"method {self.name!r} is not trained: call fit(train, guides) or load(checkpoint) "
                               f"first")

@@ -79,7 +79,8 @@ def _is_sequence_dataset(ds) -> bool:
 
 
 def window_view(ds, window: int, stride: int = 1, keep: Optional[Sequence[int]] = None):
-    """``ds`` with items of ``window`` frames every ``stride`` frames (a shallow copy of a
+    """``ds`` with items of ``window`` frames every ``stride`` frames (None: one item per whole
+    sequence) (a shallow copy of a
     HairSequenceDataset: its own file handles, its items recomputed), keeping the sequences whose
     index is in ``keep`` (default all). Another kind of dataset is returned as it is (its items
     must then hold at least ``window`` frames) or as a Subset of the kept sequences."""
@@ -89,8 +90,12 @@ def window_view(ds, window: int, stride: int = 1, keep: Optional[Sequence[int]] 
         keep = set(int(i) for i in keep)
         return torch.utils.data.Subset(ds, [i for i, q in enumerate(item_sequences(ds)) if q in keep])
     view = copy.copy(ds)  # HairSequenceDataset.__getstate__: no file handle is shared
-    view.window, view.stride = int(window), int(stride)
     kept = set(int(i) for i in keep) if keep is not None else None
+    if window is None:  # whole sequences, one item each
+        view.window, view.stride = None, int(stride)
+        view.items = [(q, 0) for q, seq in enumerate(ds.sequences) if kept is None or int(seq[2]) in kept]
+        return view
+    view.window, view.stride = int(window), int(stride)
     view.items = [(q, s) for q, seq in enumerate(ds.sequences) if kept is None or int(seq[2]) in kept
                   for s in range(0, int(seq[-1]) - window + 1, stride)]
     if not view.items:

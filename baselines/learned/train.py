@@ -130,6 +130,29 @@ def _make_key(method, meta_key, guides, data) -> str:
                    "guides": [int(g) for g in guides], "data": data})
 
 
+def _suited_training(method, train, view, first, opt):
+    """(view, first) restricted to the sequences of the largest group that suits the method: for a
+    method bound to one groom (``unsuitable`` says "another groom"), the groom with the most
+    training sequences (said in a warning when some are left out). One window per sequence is read."""
+    from .base import LearnedInterpolator  # (base imports this module)
+
+    if not hasattr(view, "sequences") or type(method).unsuitable is LearnedInterpolator.unsuitable:
+        return view, first
+    reps = {}  # sequence index -> its first window
+    for i, (q, _) in enumerate(view.items):
+        reps.setdefault(int(view.sequences[q][2]), i)
+    items = {seq: view[i] for seq, i in reps.items()}
+    groups = {seq: [o for o in items if not method.unsuitable(items[o], items[seq])] for seq in items}
+    best = max(groups, key=lambda q: (len(groups[q]), -q))
+    if len(groups[best]) == len(items):
+        return view, first
+    warnings.warn(f"{method.name}: the train split holds {len(items)} sequences of several grooms; training on the "
+                  f"{len(groups[best])} of the groom with the most (sequence {best}'s); it predicts that groom only",
+                  stacklevel=4)
+    view = window_view(train, method.window, opt["stride"], keep=groups[best])
+    return view, view[0]
+
+
 def fit_method(method, train, guides: torch.Tensor, valid=None) -> dict:
     """Train ``method`` (a :class:`~baselines.learned.base.LearnedInterpolator`) on the ``train``
     dataset, validating on ``valid`` (or on sequences held out of ``train``). Sets
@@ -149,6 +172,7 @@ def fit_method(method, train, guides: torch.Tensor, valid=None) -> dict:
         raise ValueError(f"{method.name}: no training window of {method.window} frames")
     first = view[0]
     check_item(first, method.name)
+    view, first = _suited_training(method, train, view, first, opt)
     if first["positions"].shape[0] < method.window:
         raise ValueError(f"{method.name}: needs windows of {method.window} frames; the dataset's items have "
                          f"{first['positions'].shape[0]}")

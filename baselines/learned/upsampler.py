@@ -12,7 +12,7 @@ import hashlib
 
 import torch
 
-from baselines.protocol import MethodError
+from baselines.protocol import NotApplicable
 from baselines.upsampler import GuideUpsampler
 
 from .base import LearnedInterpolator, mm2, register_method
@@ -90,7 +90,7 @@ class Upsampler(LearnedInterpolator):
         dev = model.skin.rest_dense.device
         why = _same_groom(model, sample["rest_positions"].to(dev), sample["guide_index"].to(dev))
         if why:
-            raise MethodError(f"method 'upsampler': {why}; the upsampler applies to the groom it was trained on "
+            raise NotApplicable(f"method 'upsampler': {why}; the upsampler applies to the groom it was trained on "
                               f"(use 'agnostic' for other grooms)")
         g = sample["guide_positions"].to(dev, torch.float32)
         rot, trans = sample["rotations"].to(g), sample["translations"].to(g)
