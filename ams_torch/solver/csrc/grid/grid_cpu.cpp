@@ -328,7 +328,13 @@ void pressure_impl(const T* faces, const int32_t* table, const int32_t* blocks, 
   std::vector<int64_t> first(size_t(B + 1), 0);
   for (int64_t b = 0; b < B; ++b) first[b + 1] = first[b] + std::min<int64_t>(std::max(count[b], 0), K);
   const int64_t U = first[B];
-  for (int64_t b = 0; b < B; ++b) overflow[b] = count[b] > K; // the blocks P2G left out
+  for (int64_t b = 0; b < B; ++b) { // unused slots hold 0: every output is defined, as on CUDA
+    overflow[b] = count[b] > K;     // the blocks P2G left out
+    const int64_t used = first[b + 1] - first[b];
+    std::fill(phi_a + (b * K + used) * kBlockCells, phi_a + (b + 1) * K * kBlockCells, T(0));
+    std::fill(phi_b + (b * K + used) * kBlockCells, phi_b + (b + 1) * K * kBlockCells, T(0));
+    std::fill(field + (b * K + used) * 3 * kBlockCells, field + (b + 1) * K * 3 * kBlockCells, T(0));
+  }
   if (U == 0) return;
   std::vector<int32_t> scene(static_cast<size_t>(U));
   for (int64_t b = 0; b < B; ++b) std::fill(scene.begin() + first[b], scene.begin() + first[b + 1], int32_t(b));

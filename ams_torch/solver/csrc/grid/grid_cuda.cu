@@ -114,10 +114,9 @@ __global__ void setup_kernel(const T* faces, const int32_t* count, const int32_t
        g += int64_t(gridDim.x) * blockDim.x) {
     const int64_t cell = g / kBlockCells; // b K + slot
     const int64_t b = cell / K, slot = cell % K;
-    if (slot >= used_slots(count, b, K)) continue;
-    phi_a[g] = T(0);
+    phi_a[g] = T(0); // unused slots too: every output is defined (0 outside the hair)
     phi_b[g] = T(0);
-    if (!solve) continue;
+    if (slot >= used_slots(count, b, K) || !solve) continue;
     T* e = entries + kEntry * g;
     if (!cell_entry(faces + b * K * 3 * kBlockCells * 2, slot, int(g % kBlockCells), nbr + 6 * cell, q, e)) {
       for (int s = 0; s < kEntry; ++s) e[s] = T(0); // not active: the sweeps keep its phi at 0
@@ -169,7 +168,10 @@ __global__ void field_kernel(const T* faces, const T* phi, const int32_t* count,
        f += int64_t(gridDim.x) * blockDim.x) {
     const int64_t cell = f / (3 * kBlockCells); // b K + slot
     const int64_t b = cell / K, slot = cell % K;
-    if (slot >= used_slots(count, b, K)) continue;
+    if (slot >= used_slots(count, b, K)) {
+      field[f] = T(0); // an unused slot: no hair, no velocity
+      continue;
+    }
     const int c = int((f / kBlockCells) % 3);
     field[f] = face_field(faces + b * K * 3 * kBlockCells * 2, phi + b * K * kBlockCells, slot, c,
                           int(f % kBlockCells), nbr + 6 * cell, q);
