@@ -46,6 +46,12 @@ def test_chamfer_known_answers():
     assert M.chamfer(ref + d, ref) == pytest.approx(0.1, rel=1e-9)
     # subsampling keeps the same answer on this cloud
     assert M.chamfer(ref + d, ref, max_points=17) == pytest.approx(0.1, rel=1e-9)
+    # frame subsampling: shifts of 0.01 mm t on frames t = 0..6; 3 evenly spaced frames are 0, 3, 6
+    seq = ref[:1].repeat(7, 1, 1, 1)
+    shift = torch.arange(7, dtype=D).view(7, 1, 1, 1) * 1e-5 * torch.tensor([0.0, 0.0, 1.0], dtype=D)
+    assert M.chamfer(seq + shift, seq) == pytest.approx(0.03, rel=1e-9)  # all 7 frames: mean of 0.01 t
+    assert M.chamfer(seq + shift, seq, max_frames=3) == pytest.approx(0.03, rel=1e-9)  # (0 + .03 + .06) / 3
+    assert M.chamfer(seq[:5] + shift[:5], seq[:5], max_frames=2) == pytest.approx(0.02, rel=1e-9)  # frames 0, 4
 
 
 def test_curvature_of_a_circle_and_length_errors():
