@@ -347,6 +347,12 @@ def _fitted(spec: str, name: str, path: Path, g: int, info: dict, outp: Path, tr
     return method
 
 
+#: results.json is rewritten at most this often while a split is scored (and at the end of each
+#: split): a kill loses at most this much scoring; resuming skips the saved rows
+SAVE_EVERY_S = 20.0
+_LAST_SAVE = [0.0]
+
+
 def _score_split(method, spec: str, name: str, path: Path, split: str, g: int, src: str, device, results: dict,
                  done: set, results_path: Path, progress: bool) -> None:
     from baselines.metrics import sequence_metrics
@@ -384,7 +390,11 @@ def _score_split(method, spec: str, name: str, path: Path, split: str, g: int, s
             row.update(tags)
             results["rows"].append(row)
             done.add(_key(row))
-        _atomic_json(results_path, results)
+        if time.monotonic() - _LAST_SAVE[0] >= SAVE_EVERY_S:  # rewriting a growing file per row is O(rows²)
+            _atomic_json(results_path, results)
+            _LAST_SAVE[0] = time.monotonic()
+    _atomic_json(results_path, results)  # every split ends saved
+    _LAST_SAVE[0] = time.monotonic()
 
 
 def _tags(ds, seq: int) -> dict:

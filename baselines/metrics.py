@@ -71,8 +71,8 @@ def tip_error(pred: torch.Tensor, ref: torch.Tensor) -> float:
     return float((pred[..., -1, :] - ref[..., -1, :]).norm(dim=-1).mean() * MM)
 
 
-def chamfer(pred: torch.Tensor, ref: torch.Tensor, pinned: Pinned = 0, max_points: int = 2048,
-            max_frames: int = 12, seed: int = 0) -> float:
+def chamfer(pred: torch.Tensor, ref: torch.Tensor, pinned: Pinned = 0, max_points: int = 1024,
+            max_frames: int = 8, seed: int = 0) -> float:
     """Symmetric Chamfer distance (mm) between the vertex clouds of pred and ref, per frame, averaged
     over frames: ½ (mean over p of min over r |p − r| + mean over r of min over p |r − p|).
 
