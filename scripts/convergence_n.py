@@ -235,6 +235,27 @@ def render(records: list, cant: dict, meta: dict, out: Path) -> None:
                      f"{r['order']:.2f} | {r['ratio']:.2f} | " + ", ".join(f"{e:.3g}" for e in alt["rms_error_mm"]) +
                      f" ({alt['ratio']:.2f}) | {rc['rms_error_mm']:.3g} ({rc['over_smallest']:.2f}) | "
                      f"{r.get('time_error_mm', float('nan')):.2g} | {'met' if verdict(r) else '**not met**'} |")
+    misses = []
+    for r in records:
+        if verdict(r):
+            continue
+        why = []
+        if not r["monotone"]:
+            why.append("not monotone")
+        if r["order"] < TARGET_ORDER:
+            why.append(f"order {r['order']:.2f} < {TARGET_ORDER}")
+        if r["ratio"] < TARGET_RATIO:
+            why.append(f"ratio {r['ratio']:.2f} < {TARGET_RATIO:g}")
+        for k, a in r.items():
+            if k.startswith("against_") and not (a["monotone"] and a["ratio"] >= TARGET_RATIO):
+                why.append(f"{k.replace('_', ' N = ')}: ratio {a['ratio']:.2f}")
+        over = r["reference_check"]["over_smallest"]
+        if over > TARGET_REF:
+            why.append(f"reference check {over:.2f}× the smallest error judged (> {TARGET_REF:g}: the N = {REF_N} "
+                       f"reference carries up to ≈ {over:.0%} of that error)")
+        misses.append(f"{r['scene']} {r['material']}: " + "; ".join(why))
+    if misses:
+        lines += ["", "Targets missed, by how much: " + ". ".join(misses) + "."]
     lines += ["", "Order: least-squares slope of −log(error) against log(N) over the judged N (1 = first order). "
               "Pairwise orders (log₂ of successive ratios): " +
               "; ".join(f"{r['scene']} {r['material']}: " + ", ".join(f"{o:.2f}" for o in r["pairwise_orders"])
