@@ -251,8 +251,8 @@ def _reference_rows(name: str, path: Path, split: str, g: int, source: str, samp
 def run(source: str, methods: Sequence[str], guides: Sequence[int], out: str, *, train: bool = False,
         retrain: bool = False, device="cpu", guide_source: str = "alone", splits: Optional[Sequence[str]] = None,
         options: Optional[Dict[str, dict]] = None, cost_sizes: Sequence[int] = (10_000, 100_000),
-        cost_frames: int = 3, progress: bool = True, log: Callable[[str], None] = print,
-        command: Optional[List[str]] = None) -> dict:
+        cost_frames: int = 3, cost_dataset: Optional[str] = None, progress: bool = True,
+        log: Callable[[str], None] = print, command: Optional[List[str]] = None) -> dict:
     """Run the benchmark (see the module docstring). Returns the results dict written to
     ``out/results.json``.
 
@@ -265,7 +265,8 @@ def run(source: str, methods: Sequence[str], guides: Sequence[int], out: str, *,
         guide_source: "alone" (default), "dense" or "both". splits: the held-out splits to score
             (default: every split of the dataset except train and valid).
         options: per-method keyword options, ``{method spec: {key: value}}``, given to its factory.
-        cost_sizes: dense strand counts of the cost measurement (empty: none).
+        cost_sizes: dense strand counts of the cost measurement (empty: none). cost_dataset: the
+            dataset (name in the suite) whose scene the cost measurement regrows (default: the first).
     """
     from baselines import cost, report
 
@@ -283,6 +284,8 @@ def run(source: str, methods: Sequence[str], guides: Sequence[int], out: str, *,
     results = _load_results(results_path)
     results["runs"].append(provenance(device, command))
     datasets = resolve_source(source, outp, device=device, log=log, progress=progress)
+    if cost_sizes and cost_dataset is not None and cost_dataset not in dict(datasets):
+        raise BenchError(f"--cost-dataset {cost_dataset!r} is not a dataset of this run ({[n for n, _ in datasets]})")
     options = options or {}
     done = {_key(r) for r in results["rows"]}
     for name, path in datasets:
@@ -306,7 +309,11 @@ def run(source: str, methods: Sequence[str], guides: Sequence[int], out: str, *,
                         _score_split(method, spec, name, path, split, int(g), src, device, results, done,
                                      results_path, progress)
     if cost_sizes:
-        results["cost"] = cost.measure(datasets[0][1], methods, guides, cost_sizes, device=device,
+        named = dict(datasets)
+        cost_name = cost_dataset if cost_dataset is not None else datasets[0][0]
+        log(f"cost: the scene of dataset {cost_name!r}")
+        results["cost_dataset"] = cost_name
+        results["cost"] = cost.measure(named[cost_name], methods, guides, cost_sizes, device=device,
                                        frames=cost_frames, options=options, log=log, models=outp / "models")
     _atomic_json(results_path, results)
     report.write(results, outp)

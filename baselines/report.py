@@ -123,6 +123,8 @@ def leaderboard(results: dict) -> str:
     cost = results.get("cost") or []
     if cost:
         out += ["## Cost: guides + interpolation against dense simulation (ms/frame, same device)", "",
+                f"The scene of dataset `{results.get('cost_dataset', '?')}` (head, colliders, hair–hair grid, "
+                "params, motion of its first sequence) with the groom regrown at S strands.", "",
                 "| strands | guides | method | dense | guides alone | method | guides + method | speed-up | note |",
                 "|---|---|---|---|---|---|---|---|---|"]
         for c in cost:

@@ -88,6 +88,7 @@ def test_mini_suite_end_to_end(mini_run):
     assert "test_bench_interp:make_plugin" in board and "held out: groom_seed" in board
     assert (out / "error_vs_guides.png").stat().st_size > 0
     assert res["cost"] and {c["method"] for c in res["cost"]} >= {"skinning", "test_bench_interp:make_plugin"}
+    assert res["cost_dataset"] == "mini"
 
 
 def test_rerun_resumes_without_recomputing(mini_run, tmp_path):
@@ -122,6 +123,9 @@ def test_errors_a_newcomer_meets(mini_run, tmp_path, capsys):
     assert main(["bench-interp", data, "--methods", "nope:factory", "--guides", "8", "--out", str(tmp_path / "m"),
                  "--cost-sizes", "none", "--quiet"]) == 2
     assert "cannot import module" in capsys.readouterr().err
+    assert main(["bench-interp", data, "--methods", "skinning", "--guides", "8", "--out", str(tmp_path / "c"),
+                 "--cost-sizes", "100", "--cost-dataset", "hairhair", "--quiet"]) == 2
+    assert "--cost-dataset 'hairhair' is not a dataset of this run" in capsys.readouterr().err
 
 
 def test_dataset_without_guides_is_refused_naming_the_recipe_key():

@@ -384,6 +384,7 @@ def _cmd_bench_interp(args) -> int:
                         device=device, guide_source=args.guide_source,
                         splits=[s for s in args.splits.split(",") if s] if args.splits else None,
                         options=bench.parse_options(args.option or []), cost_sizes=sizes, cost_frames=args.cost_frames,
+                        cost_dataset=args.cost_dataset,
                         progress=not args.quiet, command=["ams-torch"] + (args.argv or []))
     scored = sum(1 for r in results["rows"] if not r["method"].startswith("("))
     print(f"wrote {os.path.join(args.out, 'results.json')} ({scored} rows: method x guides x sequence) and "
@@ -478,6 +479,8 @@ def _parser() -> argparse.ArgumentParser:
     bp.add_argument("--cost-sizes", default="10000,100000", help="dense strand counts of the cost measurement "
                     "(comma-separated; 'none' skips it)")
     bp.add_argument("--cost-frames", type=int, default=3, help="frames timed per cost measurement")
+    bp.add_argument("--cost-dataset", help="the dataset of a suite whose scene the cost measurement regrows "
+                    "(default: the first)")
     bp.add_argument("--threads", type=int, help="torch CPU threads")
     bp.add_argument("--quiet", action="store_true", help="no progress bars")
     bp.set_defaults(fn=_cmd_bench_interp)
