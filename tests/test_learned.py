@@ -3,6 +3,7 @@ learning beats skinning where the answer is learnable, causal streaming, a held-
 checkpoints and resumption, clear errors, the training script (also under DDP)."""
 import json
 import os
+from pathlib import Path
 
 import pytest
 import torch
@@ -250,10 +251,31 @@ def test_clear_errors(toy, groom_b, trained):
         up = Upsampler(**_opts("upsampler", steps=2)).fit(train, train[0]["guide_index"],
                                                           valid=DenseGuides(groom_b, G, split="train"))
     assert up.result["steps"] == 2
+    # a train split of two grooms and a valid split of a third: the upsampler trains on one groom and
+    # validates on held-out sequences of that groom (not of the other)
+    mixed = DenseGuides(toy_dataset(Path(groom_b).parent / "mixed", strands="{ cycle = [48, 56] }", sequences=8,
+                                    split=(0.75, 0.25, 0.0)), G, split="train")
+    assert {mixed[i]["rest_positions"].shape[0] for i in range(len(mixed))} == {48, 56}
+    with pytest.warns(UserWarning, match="no window of the valid split suits"):
+        up = Upsampler(**_opts("upsampler", steps=2)).fit(mixed, mixed[0]["guide_index"],
+                                                          valid=DenseGuides(groom_b, G, split="train"))
+    assert up.result["steps"] == 2
     # the upsampler trains on one groom only
     both = torch.utils.data.ConcatDataset([train, DenseGuides(groom_b, G, split="train")])
     with pytest.raises(ValueError, match="bound to one groom"):
         Upsampler(**_opts("upsampler", steps=40)).fit(both, train[0]["guide_index"], valid=valid)
+
+
+def test_held_out_sequences_stay_out_of_a_new_view(toy):
+    from baselines.learned.data import holdout, item_sequences, window_view
+
+    train = DenseGuides(toy, G, split="train")
+    part, held = holdout(train, 0.5)
+    seqs, out = set(item_sequences(part)), set(item_sequences(held))
+    assert seqs and out and not seqs & out
+    for window in (None, 4):  # re-windowing the train part (what training does) keeps the held-out part out
+        assert set(item_sequences(window_view(part, window))) == seqs
+    assert set(item_sequences(window_view(part, None, keep=sorted(out)))) == set()
 
 
 def test_learned_methods_are_builtins():

@@ -82,7 +82,8 @@ def window_view(ds, window: int, stride: int = 1, keep: Optional[Sequence[int]] 
     """``ds`` with items of ``window`` frames every ``stride`` frames (None: one item per whole
     sequence) (a shallow copy of a
     HairSequenceDataset: its own file handles, its items recomputed), keeping the sequences whose
-    index is in ``keep`` (default all). Another kind of dataset is returned as it is (its items
+    index is in ``keep`` (default all; a view of a view keeps only sequences the first kept, so
+    a held-out part never comes back). Another kind of dataset is returned as it is (its items
     must then hold at least ``window`` frames) or as a Subset of the kept sequences."""
     if not _is_sequence_dataset(ds):
         if keep is None:
@@ -91,6 +92,10 @@ def window_view(ds, window: int, stride: int = 1, keep: Optional[Sequence[int]] 
         return torch.utils.data.Subset(ds, [i for i, q in enumerate(item_sequences(ds)) if q in keep])
     view = copy.copy(ds)  # HairSequenceDataset.__getstate__: no file handle is shared
     kept = set(int(i) for i in keep) if keep is not None else None
+    before = getattr(ds, "kept_sequences", None)  # a view of a view keeps the first one's restriction
+    if before is not None:
+        kept = set(before) if kept is None else kept & set(before)
+    view.kept_sequences = None if kept is None else frozenset(kept)
     if window is None:  # whole sequences, one item each
         view.window, view.stride = None, int(stride)
         view.items = [(q, 0) for q, seq in enumerate(ds.sequences) if kept is None or int(seq[2]) in kept]
@@ -123,7 +128,7 @@ def holdout(train, share: float = 0.2):
         every = max(2, round(1.0 / share))
         held = seqs[every - 1::every] or seqs[-1:]
         kept = [s for s in seqs if s not in held]
-        return _keep(train, kept), _keep(train, held)
+        return keep_sequences(train, kept), keep_sequences(train, held)
     n = len(train)
     cut = max(1, min(n - 1, int(round(n * (1 - share))))) if n > 1 else n
     if n < 2:
@@ -131,7 +136,7 @@ def holdout(train, share: float = 0.2):
     return torch.utils.data.Subset(train, range(cut)), torch.utils.data.Subset(train, range(cut, n))
 
 
-def _keep(ds, seqs):
+def keep_sequences(ds, seqs):
     if _is_sequence_dataset(ds):
         return window_view(ds, ds.window, ds.stride, keep=seqs)
     keep = set(seqs)

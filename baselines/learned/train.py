@@ -27,7 +27,8 @@ from typing import Optional
 
 import torch
 
-from .data import (StepBatches, check_item, dataset_fingerprint, digest, holdout, strand_subset, to_device,
+from .data import (StepBatches, keep_sequences, check_item, dataset_fingerprint, digest, holdout, item_sequences,
+                   strand_subset, to_device,
                    window_view)
 
 __all__ = ["fit_method", "save_blob", "load_blob", "dist_info"]
@@ -172,20 +173,23 @@ def fit_method(method, train, guides: torch.Tensor, valid=None) -> dict:
         raise ValueError(f"{method.name}: no training window of {method.window} frames")
     first = view[0]
     check_item(first, method.name)
-    view, first = _suited_training(method, train, view, first, opt)
-    if first["positions"].shape[0] < method.window:
-        raise ValueError(f"{method.name}: needs windows of {method.window} frames; the dataset's items have "
-                         f"{first['positions'].shape[0]}")
-    gi = torch.as_tensor(guides).long().cpu()
+    gi = torch.as_tensor(guides).long().cpu()  # the guides of the first item (each groom has its own)
     if not torch.equal(first["guide_index"].long().cpu(), gi):
         raise ValueError(f"{method.name}: fit(guides=...) got {gi.tolist()[:8]}... but the items' guide_index is "
                          f"{first['guide_index'].tolist()[:8]}... (open the dataset with the same guides)")
+    view, first = _suited_training(method, train, view, first, opt)
+    gi = first["guide_index"].long().cpu()  # a groom-bound method: its groom's guides
+    if first["positions"].shape[0] < method.window:
+        raise ValueError(f"{method.name}: needs windows of {method.window} frames; the dataset's items have "
+                         f"{first['positions'].shape[0]}")
     vview, vids = _validation_windows(method, valid, first, opt)
     if not vids and given is not None:
         warnings.warn(f"{method.name}: no window of the valid split suits the method (e.g. another groom); "
                       f"validating on sequences held out of the train split instead", stacklevel=3)
-        train, valid = holdout(whole, opt["holdout"])
+        # held out of the sequences the method trains on (one groom for a groom-bound method)
+        train, valid = holdout(keep_sequences(whole, sorted(set(item_sequences(view)))), opt["holdout"])
         view = window_view(train, method.window, opt["stride"])
+        first = view[0]
         vview, vids = _validation_windows(method, valid, first, opt)
     if not vids:
         raise ValueError(f"{method.name}: no validation window suits the method")
