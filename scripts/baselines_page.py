@@ -32,33 +32,34 @@ def _subset(r: dict) -> str:
 
 
 def comparisons(results: dict, baseline: str = "skinning") -> list:
-    """Sentences: each learned method against ``baseline`` (guides alone), overall per G and per
-    dataset × held-out subset × G ("where"), counting wins and naming the cells."""
+    """Sentences: each method against ``baseline`` (guides alone), paired on the sequences both
+    scored (a learned model is not applicable to grooms of another particle count), overall per G
+    and per dataset × held-out subset × G ("where")."""
     rows = [dict(r, subset=_subset(r)) for r in results["rows"] if r["guide_source"] == "alone"]
-    overall = summarise(rows, ("guides", "method"))
-    per = summarise(rows, ("dataset", "subset", "guides", "method"))
+    seq = lambda r: (r["dataset"], r["split"], r["guides"], r["sequence"])  # noqa: E731
+    base = {seq(r): r for r in rows if r["method"] == baseline and "mean_mm" in r}
     lines = []
     for m in [m for m in dict.fromkeys(r["method"] for r in rows) if m not in REFERENCE_ROWS and m != baseline]:
-        tot = []
-        for (g, mm), agg in sorted(overall.items()):
-            if mm == m and "mean_mm" in agg and (g, baseline) in overall:
-                b = overall[(g, baseline)]["mean_mm"]
-                tot.append(f"G={g}: {agg['mean_mm']:.2f} vs {b:.2f} mm ({_pct(agg['mean_mm'], b)})")
-        wins, losses, na = [], [], 0
-        for (ds, sub, g, mm), agg in sorted(per.items()):
-            if mm != m or (ds, sub, g, baseline) not in per:
-                continue
-            if "mean_mm" not in agg:
-                na += 1
-                continue
-            b = per[(ds, sub, g, baseline)]["mean_mm"]
-            cell = f"{ds} {sub} G={g} ({_pct(agg['mean_mm'], b)})"
-            (wins if agg["mean_mm"] < b else losses).append(cell)
-        if tot or wins or losses:
-            lines.append(f"- **{m}** against {baseline}, every held-out sequence: {'; '.join(tot) or 'not applicable'}. "
-                         f"Better in {len(wins)} of {len(wins) + len(losses)} (dataset, subset, G) cells"
-                         f"{f' ({na} not applicable)' if na else ''}: {'; '.join(wins) or 'none'}. "
-                         f"Not better: {'; '.join(losses) or 'none'}.")
+        mine = [r for r in rows if r["method"] == m]
+        scored = [r for r in mine if "mean_mm" in r and seq(r) in base]
+        paired = scored + [dict(base[seq(r)], method=baseline) for r in scored]
+        overall = summarise(paired, ("guides", "method"))
+        per = summarise(paired, ("dataset", "subset", "guides", "method"))
+        na = len(mine) - len(scored)
+        tot = [f"G={g}: {a['mean_mm']:.2f} vs {overall[(g, baseline)]['mean_mm']:.2f} mm "
+               f"({_pct(a['mean_mm'], overall[(g, baseline)]['mean_mm'])}, {a['sequences']} sequences)"
+               for (g, mm), a in sorted(overall.items()) if mm == m]
+        wins, losses = [], []
+        for (ds, sub, g, mm), a in sorted(per.items()):
+            if mm == m:
+                b = per[(ds, sub, g, baseline)]["mean_mm"]
+                (wins if a["mean_mm"] < b else losses).append(f"{ds} {sub} G={g} ({_pct(a['mean_mm'], b)})")
+        if tot:
+            lines.append(f"- **{m}** against {baseline}{f' (on the {len(scored)} sequences it applies to; {na} not applicable)' if na else ''}: "
+                         f"{'; '.join(tot)}. Better in {len(wins)} of {len(wins) + len(losses)} (dataset, subset, G) "
+                         f"cells: {'; '.join(wins) or 'none'}. Not better: {'; '.join(losses) or 'none'}.")
+        elif mine:
+            lines.append(f"- **{m}**: not applicable to any held-out sequence.")
     return lines
 
 

@@ -18,7 +18,7 @@ from typing import Optional
 
 import torch
 
-from baselines.protocol import MethodError
+from baselines.protocol import MethodError, NotApplicable
 
 from .base import LearnedInterpolator, StrandMLP, mm2, register_method
 from .data import check_sample
@@ -99,7 +99,7 @@ class NeighbourhoodMethod(LearnedInterpolator):
         t, g, s, n = check_sample(sample, self.name)
         want = model.net[-1].out_features // 3
         if n != want:
-            raise MethodError(f"method {self.name!r}: the groom has N = {n} particles per strand; the model was "
+            raise NotApplicable(f"method {self.name!r}: the groom has N = {n} particles per strand; the model was "
                               f"trained with N = {want}")
         return t, g, s, n
 

@@ -173,9 +173,10 @@ class LearnedInterpolator(Interpolator):
         return meta
 
     def unsuitable(self, item: dict, first: dict) -> str:
-        """Why a validation window cannot score this method trained on items like ``first``
-        ('' when it can)."""
-        return ""
+        """Why a window cannot train or score this method trained on items like ``first`` ('' when
+        it can). The models take a fixed number of particles per strand N: another N is unsuitable."""
+        n, want = item["rest_positions"].shape[1], first["rest_positions"].shape[1]
+        return "" if n == want else f"another number of particles per strand (N = {n}, not {want})"
 
     @abstractmethod
     def make_model(self, meta: dict) -> nn.Module:

@@ -21,7 +21,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from baselines.protocol import MethodError
+from baselines.protocol import MethodError, NotApplicable
 
 from .base import LearnedInterpolator, StrandMLP, mm2, register_method
 from .data import check_sample
@@ -181,7 +181,7 @@ class Temporal(LearnedInterpolator):
         t, g, s, n = check_sample(sample, self.name)
         want = model.head.net[-1].out_features // 3
         if n != want:
-            raise MethodError(f"method 'temporal': the groom has N = {n} particles per strand; the model was "
+            raise NotApplicable(f"method 'temporal': the groom has N = {n} particles per strand; the model was "
                               f"trained with N = {want}")
         return t, g, s, n
 

@@ -132,12 +132,11 @@ def _make_key(method, meta_key, guides, data) -> str:
 
 
 def _suited_training(method, train, view, first, opt):
-    """(view, first) restricted to the sequences of the largest group that suits the method: for a
-    method bound to one groom (``unsuitable`` says "another groom"), the groom with the most
-    training sequences (said in a warning when some are left out). One window per sequence is read."""
-    from .base import LearnedInterpolator  # (base imports this module)
-
-    if not hasattr(view, "sequences") or type(method).unsuitable is LearnedInterpolator.unsuitable:
+    """(view, first) restricted to the sequences of the largest group that suits the method
+    (``unsuitable``): the sequences with the most common number of particles per strand, or for a
+    method bound to one groom, that groom's (said in a warning when some are left out). One window
+    per sequence is read."""
+    if not hasattr(view, "sequences"):
         return view, first
     reps = {}  # sequence index -> its first window
     for i, (q, _) in enumerate(view.items):
@@ -147,8 +146,10 @@ def _suited_training(method, train, view, first, opt):
     best = max(groups, key=lambda q: (len(groups[q]), -q))
     if len(groups[best]) == len(items):
         return view, first
-    warnings.warn(f"{method.name}: the train split holds {len(items)} sequences of several grooms; training on the "
-                  f"{len(groups[best])} of the groom with the most (sequence {best}'s); it predicts that groom only",
+    other = next(o for o in items if o not in groups[best])
+    warnings.warn(f"{method.name}: the train split holds {len(items)} sequences that one model cannot all take "
+                  f"(sequence {other}: {method.unsuitable(items[other], items[best])}); training on the "
+                  f"{len(groups[best])} like sequence {best}, the largest such group; it predicts only those",
                   stacklevel=4)
     view = window_view(train, method.window, opt["stride"], keep=groups[best])
     return view, view[0]
