@@ -1,7 +1,7 @@
 """Fused native frame of strand dynamics (SPEC §15): torch definition vs native CPU (vs CUDA).
 
 The torch definition is ``ams_torch.sim.dynamics.frame_dynamics`` with ``assembly.assemble_system``;
-the native kernel (``ams_torch/solver/csrc/frame``) is built once per session (``native`` fixture,
+the native kernel (``ams_torch/native/csrc/frame``) is built once per session (``native`` fixture,
 cached across runs). Tolerances:
 
 * assembly, term by term, float64: the native contribution of each term agrees with the torch one to
@@ -37,7 +37,7 @@ from ams_torch.sim.op_support import pose_tensors
 from ams_torch.sim.dynamics import frame_dynamics, substep_system
 from ams_torch.sim.model import coefficients
 from ams_torch.sim.step import resolve_pose
-from ams_torch.solver import build as _native
+from ams_torch.native import build as _native
 
 REPO = Path(__file__).resolve().parents[1]
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
@@ -590,7 +590,7 @@ _FALLBACK_SCRIPT = textwrap.dedent(
     from ams_torch.sim import native
     from ams_torch.sim.dynamics import frame_dynamics
     from ams_torch.sim.step import collisions
-    from ams_torch.solver import build
+    from ams_torch.native import build
     from ams_torch.stages.collide import resolve_world_poses
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

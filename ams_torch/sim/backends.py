@@ -4,7 +4,7 @@ smoke tests of the fused ops' backends.
 :func:`resolve_backend` is the simulator's backend decision: it builds (or loads) every backend the
 configuration needs, raises for ``backend="native"`` naming each one that cannot be had and why,
 and otherwise falls back to the torch definition with one warning per backend
-(:mod:`ams_torch.solver.build`). The probes registered here (frame, collisions, grid) are what
+(:mod:`ams_torch.native.build`). The probes registered here (frame, collisions, grid) are what
 ``build`` runs right after loading such a backend: one tiny call compared with the torch definition.
 """
 from __future__ import annotations
@@ -20,7 +20,7 @@ from ams_torch.sim.model import Model, coefficients
 from ams_torch.sim.native import _COLLIDE_KINDS, _KINDS, NATIVE_DTYPES, collision_arguments, op_arguments
 from ams_torch.sim.params import Params
 from ams_torch.sim.state import Config
-from ams_torch.solver import build as _native, probes
+from ams_torch.native import build as _native, probes
 from ams_torch.stages.collide import SphereCollider, resolve_world_poses
 from ams_torch.stages.hair_hair.sparse import densify, p2g_sparse
 
@@ -32,7 +32,7 @@ F64 = torch.float64
 def needed_backends(device, hair_hair: bool = False, colliders: bool = False) -> Tuple[List[str], List[str]]:
     """The native backends a simulator on ``device`` uses: (required by ``backend="native"``, used
     when there: the banded solve of the torch path, which frames that keep a gradient take).
-    Kinds of :mod:`ams_torch.solver.build`: ``frame_<dev>``, ``collide_<dev>`` with colliders,
+    Kinds of :mod:`ams_torch.native.build`: ``frame_<dev>``, ``collide_<dev>`` with colliders,
     ``grid_<dev>`` with hair–hair interaction; ``cpu``/``cuda`` (the banded solve)."""
     dev = torch.device(device).type
     if dev not in _KINDS:
@@ -71,7 +71,7 @@ def resolve_backend(backend: str, device, dtype, hair_hair: bool = False, collid
     return "torch" if _KINDS[dev] in missing else "native"
 
 
-# -- smoke tests (registered with ams_torch.solver.probes) -----------------------------------------
+# -- smoke tests (registered with ams_torch.native.probes) -----------------------------------------
 
 def _tiny(device, colliders=()):
     """3 strands × 5 particles hanging at the origin, moving; (model, config, x, v, pose0, pose1)."""

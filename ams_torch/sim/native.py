@@ -9,10 +9,10 @@ every scene, in one call of the registered op ``torch.ops.ams_torch.frame_dynami
 * default implementation (any device): the torch definition, ``frame_dynamics`` itself, called
   through a light adapter that rebuilds the model, coefficients, config and poses from the op's
   tensors and numbers;
-* CPU and CUDA: the native kernels of ``ams_torch/solver/csrc/frame`` (backends ``frame_cpu`` and
-  ``frame_cuda`` of :mod:`ams_torch.solver.build`), built lazily on first use, float32 and
+* CPU and CUDA: the native kernels of ``ams_torch/native/csrc/frame`` (backends ``frame_cpu`` and
+  ``frame_cuda`` of :mod:`ams_torch.native.build`), built lazily on first use, float32 and
   float64; otherwise (not built, ``AMS_TORCH_NATIVE=0``, another dtype, an input requiring grad)
-  the torch definition, with one :class:`~ams_torch.solver.build.NativeBuildWarning` per process
+  the torch definition, with one :class:`~ams_torch.native.build.NativeBuildWarning` per process
   when a build fails;
 * ``register_fake``: shapes for ``torch.compile`` and meta tensors. No autograd formula: the
   entry point sends anything that needs a gradient to the torch definition.
@@ -50,7 +50,7 @@ from ams_torch.sim.finish import _finish_torch, native_finish_supported, pin_and
 from ams_torch.sim.op_support import NATIVE_DTYPES, as_like as _as, pose_tensors as _pose_tensors
 from ams_torch.sim.model import Coefficients, Model
 from ams_torch.sim.state import Config, ExternalForce
-from ams_torch.solver import build as _native
+from ams_torch.native import build as _native
 from ams_torch.stages.collide import (
     CapsuleCollider,
     HollowSphereCollider,

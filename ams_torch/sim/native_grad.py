@@ -6,7 +6,7 @@ the fused native frame with its M + 1 substep head poses given as a tensor (comp
 by :func:`~ams_torch.sim.dynamics.substep_poses`, so their gradients reach the frame's head poses
 and velocities), and ``register_autograd`` makes its backward the native adjoint kernel
 (``csrc/frame/frame_adjoint.h``; backends ``frame_adjoint_cpu`` / ``frame_adjoint_cuda`` of
-:mod:`ams_torch.solver.build`). The adjoint recomputes the frame (nothing is stored between the
+:mod:`ams_torch.native.build`). The adjoint recomputes the frame (nothing is stored between the
 passes) and differentiates it with respect to x, v, ghost_rest, the external force, the per-element
 coefficients (mass, drag, edge / bend / torsion stiffness, integrity, angular: the gradients of the
 Params fields behind them, per-strand fields too, follow by autograd), the non-Hookean curve
@@ -34,7 +34,7 @@ from ams_torch.sim.model import Coefficients, Model
 from ams_torch.sim.native import MODEL_FIELDS, _rebuild, op_arguments
 from ams_torch.sim.op_support import NATIVE_DTYPES
 from ams_torch.sim.state import Config, ExternalForce
-from ams_torch.solver import build as _native
+from ams_torch.native import build as _native
 
 __all__ = ["frame_dynamics_diff_op", "frame_dynamics_adjoint_op", "native_frame_dynamics_diff", "native_adjoint_supported",
            "substep_pose_tensor"]

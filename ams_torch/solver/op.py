@@ -30,7 +30,7 @@ import math
 
 import torch
 
-from ams_torch.solver import build as _native
+from ams_torch.native import build as _native
 from ams_torch.solver.reference import BANDWIDTH, solve_banded_plain
 
 __all__ = ["solve_banded", "solve_banded_op", "banded_solve_grad_blocks"]

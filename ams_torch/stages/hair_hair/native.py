@@ -5,8 +5,8 @@ block-sparse grid of :mod:`.sparse` (a pool of K blocks of 4³ cells per scene; 
 
 * default implementation (any device): the torch definition (``sparse.py``: the dense grid of
   ``transfer.py`` and ``pressure.py`` on the occupied blocks);
-* CPU and CUDA: the native kernels of ``ams_torch/solver/csrc/grid`` (backends ``grid_cpu`` and
-  ``grid_cuda`` of :mod:`ams_torch.solver.build`), built lazily on first use, for float32 and
+* CPU and CUDA: the native kernels of ``ams_torch/native/csrc/grid`` (backends ``grid_cpu`` and
+  ``grid_cuda`` of :mod:`ams_torch.native.build`), built lazily on first use, for float32 and
   float64; otherwise (not built, ``AMS_TORCH_NATIVE=0``, another dtype) the torch definition,
   unless ``require_native`` asks for an error instead;
 * ``register_fake``: shapes for ``torch.compile`` / meta tensors. No autograd formula: the
@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import torch
 
-from ams_torch.solver import build as _native
+from ams_torch.native import build as _native
 from ams_torch.stages.hair_hair.sparse import BLOCK_CELLS, blocks_per_axis, g2p_sparse, p2g_sparse, pressure_sparse
 
 __all__ = ["NATIVE_DTYPES", "native_available", "p2g_op", "pressure_op", "g2p_op", "p2g", "pressure", "g2p"]
