@@ -324,3 +324,23 @@ def test_includes_are_path_qualified(tmp_path, monkeypatch):
                    .replace('#include "frame/frame.h"', '#include "frame.h"'))
     with pytest.raises(ValueError, match="relative to its folder"):
         build.include_closure(("frame/frame_cpu.cpp",))
+
+
+@pytest.mark.parametrize("backend,contact,colliders,hair_hair,grad,want", [
+    ("torch", "frame", 0, False, False, "torch"),
+    ("torch", "substep", 2, True, True, "torch"),
+    ("native", "frame", 0, False, False, "native_finish"),
+    ("native", "frame", 1, False, False, "native"),
+    ("native", "frame", 0, True, False, "native"),
+    ("native", "substep", 1, False, False, "native_contact"),
+    ("native", "substep", 0, False, False, "native_finish"),  # substep contact without colliders: none
+    ("native", "frame", 1, True, True, "native_adjoint"),
+    ("native", "substep", 1, False, True, "torch"),  # substep contact has no native adjoint
+])
+def test_frame_route(backend, contact, colliders, hair_hair, grad, want):
+    """The one decision of how a frame's dynamics run (sim.backends.frame_route)."""
+    from ams_torch.sim.backends import FRAME_ROUTES, frame_route
+    from ams_torch.sim.state import Config
+
+    cfg = Config(dt=0.02, backend=backend, contact=contact, follow_head=(False,) * colliders, hair_hair=hair_hair)
+    assert frame_route(cfg, grad) == want and want in FRAME_ROUTES

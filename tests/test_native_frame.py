@@ -650,3 +650,33 @@ def test_cuda_matches_cpu(native_cpu, case, dtype):
     (xc, vc), (bc, rc) = out["cpu"]
     (xg, vg), (bg, rg) = out["cuda"]
     assert rel(xg, xc) <= tol and rel(vg, vc) <= tol and rel(bg, bc) <= tol and rel(rg, rc) <= tol
+
+
+def test_python_tables_match_the_binding():
+    """The op's model list (``native.MODEL_LAYOUT``) and settings (``FrameSettings``) are read by the
+    C++ binding positionally: their order must be the binding's (``kModelNames`` and the
+    ``FrameSettings{...}`` it fills, ``csrc/frame/frame_binding.h``). Two same-shape fields swapped
+    on one side would pass every shape check; this catches it."""
+    import re
+
+    from ams_torch.sim.op_support import FrameSettings
+
+    text = (_native.CSRC_ROOT / "frame" / "frame_binding.h").read_text()
+    names = re.search(r"kModelNames\[kModelCount\]\s*=\s*\{(.*?)\};", text, re.S).group(1)
+    assert tuple(re.findall(r'"(\w+)"', names)) == native.MODEL_FIELDS
+    filled = re.search(r"in\.settings\s*=\s*FrameSettings\{(.*?)\};", text, re.S).group(1)
+    fields = [re.sub(r"^int\((\w+)\)$", r"\1", a.strip()) for a in filled.split(",")]
+    assert fields == list(FrameSettings._fields) + ["hermite"]
+
+
+def test_frame_settings_round_trip_config():
+    """FrameSettings.of(config).config() is the config's frame settings (integrity model by name)."""
+    from ams_torch.sim.op_support import FrameSettings
+    from ams_torch.sim.state import Config
+
+    cfg = Config(dt=0.02, substeps=3, integrity_model="nonhookean", angular=False, geometric_stiffness=True,
+                 ftl_damping=0.7)
+    s = FrameSettings.of(cfg)
+    assert s.integrity_model == 2 and s.substeps == 3 and s.geometric_stiffness is True
+    back = s.config()
+    assert all(getattr(back, f) == getattr(cfg, f) for f in FrameSettings._fields)

@@ -14,7 +14,7 @@ Backends (``_BACKENDS``): one per op group and device (``cpu``/``cuda``: the ban
 and for every CUDA backend ``<kind>_emu``, its sources built as host code (:mod:`ams_torch.native.emulation`).
 
 Environment:
-    AMS_TORCH_NATIVE=0           use the plain-torch solver only (never build).
+    AMS_TORCH_NATIVE=0           use the torch definitions only (never build).
     AMS_TORCH_CACHE=<dir>        cache root (default ``~/.cache/ams_torch``). Each build goes to
                                  ``<root>/<backend>-torch<ver>-cuda<ver>-<hash>``, the hash
                                  covering torch/CUDA/Python versions, compiler, CPU capability,
