@@ -654,9 +654,10 @@ def test_cuda_matches_cpu(native_cpu, case, dtype):
 
 def test_python_tables_match_the_binding():
     """The op's model list (``native.MODEL_LAYOUT``) and settings (``FrameSettings``) are read by the
-    C++ binding positionally: their order must be the binding's (``kModelNames`` and the
-    ``FrameSettings{...}`` it fills, ``csrc/frame/frame_binding.h``). Two same-shape fields swapped
-    on one side would pass every shape check; this catches it."""
+    C++ binding positionally: their order must be the binding's (``kModelNames`` of
+    ``csrc/frame/frame_binding.h``; the settings' X-macro ``AMS_FRAME_SETTINGS`` of ``csrc/frame/frame.h``,
+    from which the C++ struct, schemas and parameters are made). Two same-shape fields swapped on
+    one side would pass every shape check; this catches it."""
     import re
 
     from ams_torch.sim.op_support import FrameSettings
@@ -664,9 +665,12 @@ def test_python_tables_match_the_binding():
     text = (_native.CSRC_ROOT / "frame" / "frame_binding.h").read_text()
     names = re.search(r"kModelNames\[kModelCount\]\s*=\s*\{(.*?)\};", text, re.S).group(1)
     assert tuple(re.findall(r'"(\w+)"', names)) == native.MODEL_FIELDS
-    filled = re.search(r"in\.settings\s*=\s*FrameSettings\{(.*?)\};", text, re.S).group(1)
-    fields = [re.sub(r"^int\((\w+)\)$", r"\1", a.strip()) for a in filled.split(",")]
-    assert fields == list(FrameSettings._fields) + ["hermite"]
+    settings = (_native.CSRC_ROOT / "frame" / "frame.h").read_text()
+    listed = re.search(r"#define AMS_FRAME_SETTINGS\(X\)(.*?)\n\n", settings, re.S).group(1)
+    types = {"float": "double", "int": "int64_t", "bool": "bool"}  # the schema type's C++ parameter
+    rows = re.findall(r'X\((\w+), (\w+), (\w+), "(\w+)"\)', listed)
+    assert [r[1] for r in rows] == list(FrameSettings._fields)
+    assert all(types[r[3]] == r[2] for r in rows), rows
 
 
 def test_frame_settings_round_trip_config():

@@ -46,11 +46,11 @@ _SCHEMA_TYPES = {float: "float", int: "SymInt", bool: "bool"}
 class FrameSettings(NamedTuple):
     """The :class:`~ams_torch.sim.state.Config` fields the frame kernels read, in the order they
     cross to every frame op (``ams_torch::frame_dynamics``, ``frame_assembly``, ``frame_contact``,
-    ``frame_dynamics_diff``, ``frame_dynamics_adjoint``) and in which the bindings fill their C++
-    twin, ``struct FrameSettings`` of ``csrc/frame/frame.h`` (``frame_binding.h``). Field names are
-    Config's, so :meth:`of` and :meth:`config` need no list of their own; the ops' schemas are
-    made from this table (:func:`settings_schema`). A new flag of the kernels is one line here,
-    its Config field, one member of the C++ struct and its reader in the binding.
+    ``frame_dynamics_diff``, ``frame_dynamics_adjoint``). Its C++ twin is the X-macro
+    ``AMS_FRAME_SETTINGS`` of ``csrc/frame/frame.h`` (same names, order and types; a test compares
+    them). Field names are Config's, so :meth:`of` and :meth:`config` need no list of their own; the
+    ops' schemas are made from this table (:func:`settings_schema`). A new flag of the kernels is
+    its Config field, one line here, one line of the X-macro, and its use (``docs/native.md``).
 
     dt: frame length, s; substeps: M; ftl_damping: follow-the-leader's velocity correction;
     integrity_model: 0 none, 1 Hookean, 2 non-Hookean; the rest: the Config flags.

@@ -30,9 +30,8 @@ namespace ams_torch {
 namespace frame {
 
 constexpr const char* kFrameContactSchema =
-    "frame_contact(Tensor[] state, Tensor? external_force, Tensor[] model, Tensor[] poses, float dt, int substeps, "
-    "float ftl_damping, int integrity_model, bool angular, bool angular_reaction, bool implicit_angular, "
-    "bool geometric_stiffness, bool inextensibility, bool hermite, Tensor[] collider_tensors, "
+    "frame_contact(Tensor[] state, Tensor? external_force, Tensor[] model, Tensor[] poses" AMS_FRAME_SETTINGS_SCHEMA
+    ", bool hermite, Tensor[] collider_tensors, "
     "Tensor[] collider_poses, int[] collider_ints, float[] collider_floats) -> (Tensor, Tensor)";
 
 // Validated, contiguous colliders of one call (kept alive with the tensors).

@@ -47,13 +47,41 @@ constexpr int kRow = banded::kRowElems;
 
 enum IntegrityModel { kIntegrityNone = 0, kIntegrityHookean = 1, kIntegrityNonHookean = 2 };
 
-// The Config of the step, as plain values.
+// The Config of the step that the kernels read: the one list of the C++ side, in the order of its
+// Python twin (FrameSettings of ams_torch/sim/op_support.py, whose field names these are; the tests
+// compare the two). X(member type, name, op parameter type, schema type). The struct, the ops'
+// schemas, the bindings' parameters and arguments and the struct's initialiser are made from it:
+// a flag of the kernels is one line here and its use.
+//   dt: frame length, s; substeps: M; ftl_damping: Müller's velocity-correction factor;
+//   integrity_model: IntegrityModel; the rest: the Config flags.
+#define AMS_FRAME_SETTINGS(X)                   \
+  X(double, dt, double, "float")                \
+  X(int, substeps, int64_t, "int")              \
+  X(double, ftl_damping, double, "float")       \
+  X(int, integrity_model, int64_t, "int")       \
+  X(bool, angular, bool, "bool")                \
+  X(bool, angular_reaction, bool, "bool")       \
+  X(bool, implicit_angular, bool, "bool")       \
+  X(bool, geometric_stiffness, bool, "bool")    \
+  X(bool, inextensibility, bool, "bool")
+
+// Pieces of the bindings, each with its leading comma: ", float dt, int substeps, ..." (schema),
+// ", double dt, int64_t substeps, ..." (parameters), ", dt, substeps, ..." (arguments), and
+// "double(dt), int(substeps), ..., " (the struct's initialiser, before hermite).
+#define AMS_FRAME_SETTING_SCHEMA_(member_t, name, param_t, schema_t) ", " schema_t " " #name
+#define AMS_FRAME_SETTING_PARAM_(member_t, name, param_t, schema_t) , param_t name
+#define AMS_FRAME_SETTING_ARG_(member_t, name, param_t, schema_t) , name
+#define AMS_FRAME_SETTING_INIT_(member_t, name, param_t, schema_t) member_t(name),
+#define AMS_FRAME_SETTINGS_SCHEMA AMS_FRAME_SETTINGS(AMS_FRAME_SETTING_SCHEMA_)
+#define AMS_FRAME_SETTINGS_PARAMS AMS_FRAME_SETTINGS(AMS_FRAME_SETTING_PARAM_)
+#define AMS_FRAME_SETTINGS_ARGS AMS_FRAME_SETTINGS(AMS_FRAME_SETTING_ARG_)
+#define AMS_FRAME_SETTINGS_INIT AMS_FRAME_SETTINGS(AMS_FRAME_SETTING_INIT_)
+
 struct FrameSettings {
-  double dt;          // frame length, s
-  int substeps;       // M
-  double ftl_damping; // Müller's velocity-correction factor
-  int integrity;      // IntegrityModel
-  bool angular, angular_reaction, implicit_angular, geometric_stiffness, inextensibility, hermite;
+#define AMS_FRAME_SETTING_MEMBER_(member_t, name, param_t, schema_t) member_t name;
+  AMS_FRAME_SETTINGS(AMS_FRAME_SETTING_MEMBER_)
+#undef AMS_FRAME_SETTING_MEMBER_
+  bool hermite; // the frame's poses carry velocities (a per-frame fact, not Config's)
 };
 
 // Raw pointers of one call (all contiguous; the torch bindings check shapes and dtypes).
@@ -361,7 +389,7 @@ AMS_HD void add_integrity(const Strand<V, T>& s, const Material<T>& mat, const F
     load3(s.ghost, i, y);
     load3(s.ghost_velocity, i, w);
     const V kI = s.integrity[i];
-    if (cfg.integrity == kIntegrityHookean) {
+    if (cfg.integrity_model == kIntegrityHookean) {
       const V hk = h2 * kI;
       for (int q = 0; q < 3; ++q) s.force[3 * i + q] = s.force[3 * i + q] + kI * (y[q] - xi[q]);
       const int64_t r = i * kRow;
@@ -548,7 +576,7 @@ AMS_HD void assemble(const Strand<V, T>& s, const Material<T>& mat, const FrameS
   add_springs<1>(s, h2, cfg.geometric_stiffness);
   add_springs<2>(s, h2, cfg.geometric_stiffness);
   add_springs<3>(s, h2, cfg.geometric_stiffness);
-  if (cfg.integrity != kIntegrityNone) add_integrity(s, mat, cfg, pose_a, h2);
+  if (cfg.integrity_model != kIntegrityNone) add_integrity(s, mat, cfg, pose_a, h2);
   if (cfg.angular) add_angular(s, cfg, h2);
   for (int64_t e = 0; e < 3 * n; ++e) s.b[e] = s.b[e] + h * s.force[e];
   pin_rows(s, pose_b, h);

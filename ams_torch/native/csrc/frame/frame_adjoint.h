@@ -465,7 +465,7 @@ AMS_HD void substep_adjoint(const Strand<V, T>& s, const Adjoint<V, T>& adj, con
     for (int q = 0; q < 3; ++q) adj.vb_new[3 * i + q] = m * l[q];
     if (s.has_ext)
       for (int q = 0; q < 3; ++q) adj.extb[3 * i + q] = adj.extb[3 * i + q] + h * l[q];
-    if (cfg.integrity == kIntegrityHookean) {
+    if (cfg.integrity_model == kIntegrityHookean) {
       V xi[3], y[3], w[3];
       load3(s.x, i, xi);
       load3(adj.ya, i, y);
@@ -484,7 +484,7 @@ AMS_HD void substep_adjoint(const Strand<V, T>& s, const Adjoint<V, T>& adj, con
       }
     }
   }
-  if (cfg.integrity == kIntegrityNonHookean) integrity_nonhookean_adjoint(s, adj, mat, vnew, pose_a, h, h2, pa_b);
+  if (cfg.integrity_model == kIntegrityNonHookean) integrity_nonhookean_adjoint(s, adj, mat, vnew, pose_a, h, h2, pa_b);
   springs_adjoint<1>(s, adj, vnew, h, h2, cfg.geometric_stiffness);
   springs_adjoint<2>(s, adj, vnew, h, h2, cfg.geometric_stiffness);
   springs_adjoint<3>(s, adj, vnew, h, h2, cfg.geometric_stiffness);

@@ -4,10 +4,8 @@
 //
 // Op schemas (both backends; the Python op ams_torch::frame_dynamics_diff in
 // ams_torch/sim/native_grad.py documents shapes and units):
-//   frame_posed(Tensor[] state, Tensor? external_force, Tensor[] model, Tensor poses, float dt,
-//               int substeps, float ftl_damping, int integrity_model, bool angular,
-//               bool angular_reaction, bool implicit_angular, bool geometric_stiffness,
-//               bool inextensibility) -> (Tensor, Tensor)
+//   frame_posed(Tensor[] state, Tensor? external_force, Tensor[] model, Tensor poses, <settings>)
+//               -> (Tensor, Tensor)      (<settings>: AMS_FRAME_SETTINGS of frame.h)
 //     the frame of `frame` (frame_binding.h: state, external force and model alike) with the M + 1
 //     substep head poses given: poses (P, M + 1, 12), P = 1 or the number of scenes, each pose R
 //     row-major then t; returns the new (x, v).
@@ -34,13 +32,11 @@ namespace ams_torch {
 namespace frame {
 
 constexpr const char* kFramePosedSchema =
-    "frame_posed(Tensor[] state, Tensor? external_force, Tensor[] model, Tensor poses, float dt, int substeps, "
-    "float ftl_damping, int integrity_model, bool angular, bool angular_reaction, bool implicit_angular, "
-    "bool geometric_stiffness, bool inextensibility) -> (Tensor, Tensor)";
+    "frame_posed(Tensor[] state, Tensor? external_force, Tensor[] model, Tensor poses" AMS_FRAME_SETTINGS_SCHEMA
+    ") -> (Tensor, Tensor)";
 constexpr const char* kFrameAdjointSchema =
-    "frame_adjoint(Tensor[] state, Tensor? external_force, Tensor[] model, Tensor poses, float dt, int substeps, "
-    "float ftl_damping, int integrity_model, bool angular, bool angular_reaction, bool implicit_angular, "
-    "bool geometric_stiffness, bool inextensibility, Tensor x_bar, Tensor v_bar) -> Tensor[]";
+    "frame_adjoint(Tensor[] state, Tensor? external_force, Tensor[] model, Tensor poses" AMS_FRAME_SETTINGS_SCHEMA
+    ", Tensor x_bar, Tensor v_bar) -> Tensor[]";
 
 enum AdjointIndex {
   kXBar, kVBar, kGhostBar, kExtBar, kMassBar, kDragBar, kEdgeBar, kBendBar, kTorsionBar, kIntegrityBar, kAngularBar,
@@ -55,10 +51,7 @@ struct PosedInputs {
 };
 
 inline PosedInputs check_posed_inputs(const char* op, at::TensorList state, const std::optional<at::Tensor>& ext,
-                                      at::TensorList model, const at::Tensor& poses, double dt, int64_t substeps,
-                                      double ftl_damping, int64_t integrity_model, bool angular,
-                                      bool angular_reaction, bool implicit_angular, bool geometric_stiffness,
-                                      bool inextensibility) {
+                                      at::TensorList model, const at::Tensor& poses AMS_FRAME_SETTINGS_PARAMS) {
   TORCH_CHECK(substeps >= 1, op, ": substeps must be >= 1, got ", substeps);
   TORCH_CHECK(poses.dim() == 3 && poses.size(1) == substeps + 1 && poses.size(2) == kPoseElems, op,
               ": poses must have shape (P, substeps + 1, 12), got ", poses.sizes());
@@ -75,8 +68,7 @@ inline PosedInputs check_posed_inputs(const char* op, at::TensorList state, cons
     ends.push_back(t);
   }
   PosedInputs in;
-  in.frame = check_frame_inputs(op, state, ext, model, ends, dt, substeps, ftl_damping, integrity_model, angular,
-                                angular_reaction, implicit_angular, geometric_stiffness, inextensibility, false, -1);
+  in.frame = check_frame_inputs(op, state, ext, model, ends AMS_FRAME_SETTINGS_ARGS, false, -1);
   TORCH_CHECK(p.scalar_type() == state[kX].scalar_type(), op, ": poses must be ", state[kX].scalar_type());
   in.poses = p;
   in.pose_scenes = P;

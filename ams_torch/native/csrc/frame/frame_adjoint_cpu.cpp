@@ -82,7 +82,7 @@ void run_posed(const FrameArgs<T>& args, const FrameSettings& cfg, const T* pose
   const AdjointLayout lay(N, M);
   const int64_t groups = (S + W - 1) / W;
   const bool has_ext = args.external_force != nullptr;
-  const bool nonhookean = cfg.integrity == kIntegrityNonHookean;
+  const bool nonhookean = cfg.integrity_model == kIntegrityNonHookean;
   const size_t bytes = size_t((ap ? lay.total : lay.hist_x) * W) * sizeof(T);
 
   at::parallel_for(0, B * groups, 1, [&](int64_t t_begin, int64_t t_end) {
@@ -157,7 +157,7 @@ void run_posed(const FrameArgs<T>& args, const FrameSettings& cfg, const T* pose
         gather_model(args.stiffness[k], N - 1 - k, lay.stiffness[k]);
         gather_model(args.rest_length[k], N - 1 - k, lay.rest_length[k]);
       }
-      if (cfg.integrity != kIntegrityNone) gather_model(args.integrity, N, lay.integrity);
+      if (cfg.integrity_model != kIntegrityNone) gather_model(args.integrity, N, lay.integrity);
       if (cfg.angular) gather_model(args.angular, N - 1, lay.angular);
       if (nonhookean) gather_model(args.segment_length, N, lay.segment);
       gather_scene(args.x, lay.x);
@@ -209,13 +209,9 @@ constexpr const char* kPosedOp = "ams_torch_frame_adjoint_cpu::frame_posed";
 constexpr const char* kAdjointOp = "ams_torch_frame_adjoint_cpu::frame_adjoint";
 
 std::tuple<at::Tensor, at::Tensor> frame_posed_cpu(at::TensorList state, const std::optional<at::Tensor>& ext,
-                                                   at::TensorList model, const at::Tensor& poses, double dt,
-                                                   int64_t substeps, double ftl_damping, int64_t integrity_model,
-                                                   bool angular, bool angular_reaction, bool implicit_angular,
-                                                   bool geometric_stiffness, bool inextensibility) {
-  const PosedInputs in = check_posed_inputs(kPosedOp, state, ext, model, poses, dt, substeps, ftl_damping,
-                                            integrity_model, angular, angular_reaction, implicit_angular,
-                                            geometric_stiffness, inextensibility);
+                                                   at::TensorList model,
+                                                       const at::Tensor& poses AMS_FRAME_SETTINGS_PARAMS) {
+  const PosedInputs in = check_posed_inputs(kPosedOp, state, ext, model, poses AMS_FRAME_SETTINGS_ARGS);
   TORCH_CHECK(in.frame.state[kX].device().is_cpu(), kPosedOp, ": CPU tensors expected");
   at::Tensor x, v;
   std::tie(x, v) = frame_outputs(in.frame);
@@ -229,13 +225,9 @@ std::tuple<at::Tensor, at::Tensor> frame_posed_cpu(at::TensorList state, const s
 }
 
 std::vector<at::Tensor> frame_adjoint_cpu(at::TensorList state, const std::optional<at::Tensor>& ext,
-                                          at::TensorList model, const at::Tensor& poses, double dt, int64_t substeps,
-                                          double ftl_damping, int64_t integrity_model, bool angular,
-                                          bool angular_reaction, bool implicit_angular, bool geometric_stiffness,
-                                          bool inextensibility, const at::Tensor& x_bar, const at::Tensor& v_bar) {
-  const PosedInputs in = check_posed_inputs(kAdjointOp, state, ext, model, poses, dt, substeps, ftl_damping,
-                                            integrity_model, angular, angular_reaction, implicit_angular,
-                                            geometric_stiffness, inextensibility);
+                                          at::TensorList model, const at::Tensor& poses AMS_FRAME_SETTINGS_PARAMS,
+                                              const at::Tensor& x_bar, const at::Tensor& v_bar) {
+  const PosedInputs in = check_posed_inputs(kAdjointOp, state, ext, model, poses AMS_FRAME_SETTINGS_ARGS);
   TORCH_CHECK(in.frame.state[kX].device().is_cpu(), kAdjointOp, ": CPU tensors expected");
   check_adjoint_seeds(kAdjointOp, in, x_bar, v_bar);
   const at::Tensor xb = x_bar.contiguous(), vb = v_bar.contiguous();

@@ -150,9 +150,9 @@ cudaError_t frame_adjoint_cuda(const FrameArgs<T>& args, const FrameSettings& cf
     ok &= in.add(args.stiffness[k], w + off.stiffness[k], S, N - 1 - k);
     ok &= in.add(args.rest_length[k], w + off.rest_length[k], S, N - 1 - k);
   }
-  if (cfg.integrity != kIntegrityNone) ok &= in.add(args.integrity, w + off.integrity, S, N);
+  if (cfg.integrity_model != kIntegrityNone) ok &= in.add(args.integrity, w + off.integrity, S, N);
   if (cfg.angular) ok &= in.add(args.angular, w + off.angular, S, N - 1);
-  const bool nonhookean = cfg.integrity == kIntegrityNonHookean;
+  const bool nonhookean = cfg.integrity_model == kIntegrityNonHookean;
   if (nonhookean) ok &= in.add(args.segment_length, w + off.segment, S, N);
   ok &= in.add(args.x, w + off.x, G, 3 * N);
   ok &= in.add(args.v, w + off.v, G, 3 * N);

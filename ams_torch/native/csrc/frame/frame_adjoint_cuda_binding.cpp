@@ -56,15 +56,11 @@ void launch(const char* op, const PosedInputs& in, at::Tensor* x, at::Tensor* v,
 }
 
 std::tuple<at::Tensor, at::Tensor> frame_posed_cuda(at::TensorList state, const std::optional<at::Tensor>& ext,
-                                                    at::TensorList model, const at::Tensor& poses, double dt,
-                                                    int64_t substeps, double ftl_damping, int64_t integrity_model,
-                                                    bool angular, bool angular_reaction, bool implicit_angular,
-                                                    bool geometric_stiffness, bool inextensibility) {
+                                                    at::TensorList model,
+                                                        const at::Tensor& poses AMS_FRAME_SETTINGS_PARAMS) {
   TORCH_CHECK(state.size() > 0 && state[0].is_cuda(), kPosedOp, ": CUDA tensors expected");
   const c10::cuda::CUDAGuard guard(state[0].device());
-  const PosedInputs in = check_posed_inputs(kPosedOp, state, ext, model, poses, dt, substeps, ftl_damping,
-                                            integrity_model, angular, angular_reaction, implicit_angular,
-                                            geometric_stiffness, inextensibility);
+  const PosedInputs in = check_posed_inputs(kPosedOp, state, ext, model, poses AMS_FRAME_SETTINGS_ARGS);
   at::Tensor x, v;
   std::tie(x, v) = frame_outputs(in.frame);
   if (in.frame.scenes > 0 && in.frame.strands > 0) launch(kPosedOp, in, &x, &v, nullptr, nullptr, nullptr);
@@ -72,16 +68,12 @@ std::tuple<at::Tensor, at::Tensor> frame_posed_cuda(at::TensorList state, const 
 }
 
 std::vector<at::Tensor> frame_adjoint_cuda_op(at::TensorList state, const std::optional<at::Tensor>& ext,
-                                              at::TensorList model, const at::Tensor& poses, double dt,
-                                              int64_t substeps, double ftl_damping, int64_t integrity_model,
-                                              bool angular, bool angular_reaction, bool implicit_angular,
-                                              bool geometric_stiffness, bool inextensibility, const at::Tensor& x_bar,
+                                              at::TensorList model, const at::Tensor& poses AMS_FRAME_SETTINGS_PARAMS,
+                                                  const at::Tensor& x_bar,
                                               const at::Tensor& v_bar) {
   TORCH_CHECK(state.size() > 0 && state[0].is_cuda(), kAdjointOp, ": CUDA tensors expected");
   const c10::cuda::CUDAGuard guard(state[0].device());
-  const PosedInputs in = check_posed_inputs(kAdjointOp, state, ext, model, poses, dt, substeps, ftl_damping,
-                                            integrity_model, angular, angular_reaction, implicit_angular,
-                                            geometric_stiffness, inextensibility);
+  const PosedInputs in = check_posed_inputs(kAdjointOp, state, ext, model, poses AMS_FRAME_SETTINGS_ARGS);
   check_adjoint_seeds(kAdjointOp, in, x_bar, v_bar);
   const at::Tensor xb = x_bar.contiguous(), vb = v_bar.contiguous();
   std::vector<at::Tensor> out = adjoint_outputs(in);

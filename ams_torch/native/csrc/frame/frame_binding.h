@@ -4,10 +4,10 @@
 //
 // Op schema (both backends; the Python op ams_torch::frame_dynamics in ams_torch/sim/native.py
 // documents shapes and units):
-//   frame(Tensor[] state, Tensor? external_force, Tensor[] model, Tensor[] poses, float dt,
-//         int substeps, float ftl_damping, int integrity_model, bool angular,
-//         bool angular_reaction, bool implicit_angular, bool geometric_stiffness,
-//         bool inextensibility, bool hermite, int assemble_substep) -> (Tensor, Tensor)
+//   frame(Tensor[] state, Tensor? external_force, Tensor[] model, Tensor[] poses, <settings>,
+//         bool hermite, int assemble_substep) -> (Tensor, Tensor)
+//   <settings>: float dt, int substeps, float ftl_damping, int integrity_model, bool angular, ...:
+//            the X-macro AMS_FRAME_SETTINGS of frame.h (every frame op takes them in its order)
 //   state:  [x, v, ghost_rest, sag_offset], each (..., S, N, 3) (the leading dims are the scenes)
 //   model:  [rest_positions (S, N, 3), mass (S, N), drag (S, N), edge (S, N-1), bend (S, N-2),
 //            torsion (S, N-3), integrity (S, N), angular (S, N-1), transition (), breaking (),
@@ -47,14 +47,12 @@ namespace frame {
 
 // The op's schema, the same for both backends.
 constexpr const char* kFrameSchema =
-    "frame(Tensor[] state, Tensor? external_force, Tensor[] model, Tensor[] poses, float dt, int substeps, "
-    "float ftl_damping, int integrity_model, bool angular, bool angular_reaction, bool implicit_angular, "
-    "bool geometric_stiffness, bool inextensibility, bool hermite, int assemble_substep) -> (Tensor, Tensor)";
+    "frame(Tensor[] state, Tensor? external_force, Tensor[] model, Tensor[] poses" AMS_FRAME_SETTINGS_SCHEMA
+    ", bool hermite, int assemble_substep) -> (Tensor, Tensor)";
 
 constexpr const char* kFrameFinishSchema =
-    "frame_finish(Tensor[] state, Tensor? external_force, Tensor[] model, Tensor[] poses, float dt, int substeps, "
-    "float ftl_damping, int integrity_model, bool angular, bool angular_reaction, bool implicit_angular, "
-    "bool geometric_stiffness, bool inextensibility, bool hermite, int assemble_substep, Tensor[] finish_pose) "
+    "frame_finish(Tensor[] state, Tensor? external_force, Tensor[] model, Tensor[] poses" AMS_FRAME_SETTINGS_SCHEMA
+    ", bool hermite, int assemble_substep, Tensor[] finish_pose) "
     "-> (Tensor, Tensor, Tensor)";
 constexpr const char* kFinishSchema =
     "finish(Tensor x, Tensor v, Tensor num_pinned, Tensor[] pose) -> (Tensor, Tensor)";
@@ -81,9 +79,7 @@ inline void check_shape(const char* op, const at::Tensor& t, const char* name, c
 }
 
 inline FrameInputs check_frame_inputs(const char* op, at::TensorList state, const std::optional<at::Tensor>& ext,
-                                      at::TensorList model, at::TensorList poses, double dt, int64_t substeps,
-                                      double ftl_damping, int64_t integrity_model, bool angular, bool angular_reaction,
-                                      bool implicit_angular, bool geometric_stiffness, bool inextensibility,
+                                      at::TensorList model, at::TensorList poses AMS_FRAME_SETTINGS_PARAMS,
                                       bool hermite, int64_t assemble_substep) {
   TORCH_CHECK(state.size() == kStateCount, op, ": state must be [x, v, ghost_rest, sag_offset], got ", state.size(),
               " tensors");
@@ -150,8 +146,7 @@ inline FrameInputs check_frame_inputs(const char* op, at::TensorList state, cons
       in.poses.push_back(same(t, kPoseNames[3 * j + q], dtype));
     }
   }
-  in.settings = FrameSettings{dt, int(substeps), ftl_damping, int(integrity_model), angular, angular_reaction,
-                              implicit_angular, geometric_stiffness, inextensibility, hermite};
+  in.settings = FrameSettings{AMS_FRAME_SETTINGS_INIT hermite};
   in.assemble_substep = assemble_substep;
   return in;
 }

@@ -92,7 +92,7 @@ void run_frame(const FrameArgs<T>& args, const FrameSettings& cfg, int64_t assem
                         *args.soft_ratio};
   const Layout lay(N);
   const int64_t groups = (S + W - 1) / W;
-  const bool nonhookean = cfg.integrity == kIntegrityNonHookean;
+  const bool nonhookean = cfg.integrity_model == kIntegrityNonHookean;
   const bool has_ext = args.external_force != nullptr;
   // substep contact: every scene's colliders prepared for every substep, [scene][substep][collider]
   const int64_t C = contact != nullptr ? contact->count : 0;
@@ -150,7 +150,7 @@ void run_frame(const FrameArgs<T>& args, const FrameSettings& cfg, int64_t assem
         gather_model(args.stiffness[k], N - 1 - k, lay.stiffness[k]);
         gather_model(args.rest_length[k], N - 1 - k, lay.rest_length[k]);
       }
-      if (cfg.integrity != kIntegrityNone) gather_model(args.integrity, N, lay.integrity);
+      if (cfg.integrity_model != kIntegrityNone) gather_model(args.integrity, N, lay.integrity);
       if (cfg.angular) gather_model(args.angular, N - 1, lay.angular);
       if (nonhookean) gather_model(args.segment_length, N, lay.segment);
       gather_scene(args.x, lay.x);
@@ -211,26 +211,20 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> frame_impl(const char* op, const 
 }
 
 std::tuple<at::Tensor, at::Tensor> frame_cpu(at::TensorList state, const std::optional<at::Tensor>& ext,
-                                             at::TensorList model, at::TensorList poses, double dt, int64_t substeps,
-                                             double ftl_damping, int64_t integrity_model, bool angular,
-                                             bool angular_reaction, bool implicit_angular, bool geometric_stiffness,
-                                             bool inextensibility, bool hermite, int64_t assemble_substep) {
-  const FrameInputs in = check_frame_inputs(kOp, state, ext, model, poses, dt, substeps, ftl_damping, integrity_model,
-                                            angular, angular_reaction, implicit_angular, geometric_stiffness,
-                                            inextensibility, hermite, assemble_substep);
+                                             at::TensorList model, at::TensorList poses AMS_FRAME_SETTINGS_PARAMS,
+                                                 bool hermite, int64_t assemble_substep) {
+  const FrameInputs in = check_frame_inputs(kOp, state, ext, model, poses AMS_FRAME_SETTINGS_ARGS, hermite,
+      assemble_substep);
   const auto out = frame_impl(kOp, in, nullptr);
   return {std::get<0>(out), std::get<1>(out)};
 }
 
 std::tuple<at::Tensor, at::Tensor> frame_contact_cpu(
-    at::TensorList state, const std::optional<at::Tensor>& ext, at::TensorList model, at::TensorList poses, double dt,
-    int64_t substeps, double ftl_damping, int64_t integrity_model, bool angular, bool angular_reaction,
-    bool implicit_angular, bool geometric_stiffness, bool inextensibility, bool hermite, at::TensorList tensors,
+    at::TensorList state, const std::optional<at::Tensor>& ext, at::TensorList model,
+        at::TensorList poses AMS_FRAME_SETTINGS_PARAMS, bool hermite, at::TensorList tensors,
     at::TensorList collider_poses, c10::IntArrayRef ints, c10::ArrayRef<double> floats) {
   constexpr const char* op = "ams_torch_frame_cpu::frame_contact";
-  const FrameInputs in = check_frame_inputs(op, state, ext, model, poses, dt, substeps, ftl_damping, integrity_model,
-                                            angular, angular_reaction, implicit_angular, geometric_stiffness,
-                                            inextensibility, hermite, -1);
+  const FrameInputs in = check_frame_inputs(op, state, ext, model, poses AMS_FRAME_SETTINGS_ARGS, hermite, -1);
   TORCH_CHECK(in.state[kX].device().is_cpu(), op, ": CPU tensors expected");
   const ContactInputs cin = check_contact_inputs(op, in, tensors, collider_poses, ints, floats);
   at::Tensor out0, out1;
@@ -246,14 +240,12 @@ std::tuple<at::Tensor, at::Tensor> frame_contact_cpu(
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> frame_finish_cpu(
-    at::TensorList state, const std::optional<at::Tensor>& ext, at::TensorList model, at::TensorList poses, double dt,
-    int64_t substeps, double ftl_damping, int64_t integrity_model, bool angular, bool angular_reaction,
-    bool implicit_angular, bool geometric_stiffness, bool inextensibility, bool hermite, int64_t assemble_substep,
+    at::TensorList state, const std::optional<at::Tensor>& ext, at::TensorList model,
+        at::TensorList poses AMS_FRAME_SETTINGS_PARAMS, bool hermite, int64_t assemble_substep,
     at::TensorList finish_pose) {
   constexpr const char* op = "ams_torch_frame_cpu::frame_finish";
-  const FrameInputs in = check_frame_inputs(op, state, ext, model, poses, dt, substeps, ftl_damping, integrity_model,
-                                            angular, angular_reaction, implicit_angular, geometric_stiffness,
-                                            inextensibility, hermite, assemble_substep);
+  const FrameInputs in = check_frame_inputs(op, state, ext, model, poses AMS_FRAME_SETTINGS_ARGS, hermite,
+      assemble_substep);
   return frame_impl(op, in, &finish_pose);
 }
 

@@ -209,7 +209,7 @@ cudaError_t launch_frame(const FrameArgs<T>& args, const FrameSettings& cfg, int
   pose_kernel<T><<<unsigned((pose_count + kPoseThreads - 1) / kPoseThreads), kPoseThreads, 0, stream>>>(
       args, int(M), cfg.hermite, cfg.dt, ws.poses);
 
-  const bool nonhookean = cfg.integrity == kIntegrityNonHookean;
+  const bool nonhookean = cfg.integrity_model == kIntegrityNonHookean;
   TransposeBatch<T> in; // (strands, values) -> (values, strands)
   in.add(args.rest_positions, ws.rest, S, 3 * N);
   in.add(args.mass, ws.mass, S, N);
@@ -218,7 +218,7 @@ cudaError_t launch_frame(const FrameArgs<T>& args, const FrameSettings& cfg, int
     in.add(args.stiffness[k], ws.stiffness[k], S, N - 1 - k);
     in.add(args.rest_length[k], ws.rest_length[k], S, N - 1 - k);
   }
-  if (cfg.integrity != kIntegrityNone) in.add(args.integrity, ws.integrity, S, N);
+  if (cfg.integrity_model != kIntegrityNone) in.add(args.integrity, ws.integrity, S, N);
   if (cfg.angular) in.add(args.angular, ws.angular, S, N - 1);
   if (nonhookean) in.add(args.segment_length, ws.segment, S, N);
   in.add(args.x, ws.x, G, 3 * N);

@@ -49,40 +49,32 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> frame_impl(const char* op, const 
 }
 
 std::tuple<at::Tensor, at::Tensor> frame_cuda_op(at::TensorList state, const std::optional<at::Tensor>& ext,
-                                                 at::TensorList model, at::TensorList poses, double dt,
-                                                 int64_t substeps, double ftl_damping, int64_t integrity_model,
-                                                 bool angular, bool angular_reaction, bool implicit_angular,
-                                                 bool geometric_stiffness, bool inextensibility, bool hermite,
+                                                 at::TensorList model, at::TensorList poses AMS_FRAME_SETTINGS_PARAMS,
+                                                     bool hermite,
                                                  int64_t assemble_substep) {
   constexpr const char* op = "ams_torch_frame_cuda::frame";
-  const FrameInputs in = check_frame_inputs(op, state, ext, model, poses, dt, substeps, ftl_damping, integrity_model,
-                                            angular, angular_reaction, implicit_angular, geometric_stiffness,
-                                            inextensibility, hermite, assemble_substep);
+  const FrameInputs in = check_frame_inputs(op, state, ext, model, poses AMS_FRAME_SETTINGS_ARGS, hermite,
+      assemble_substep);
   const auto out = frame_impl(op, in, nullptr);
   return {std::get<0>(out), std::get<1>(out)};
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> frame_finish_cuda_op(
-    at::TensorList state, const std::optional<at::Tensor>& ext, at::TensorList model, at::TensorList poses, double dt,
-    int64_t substeps, double ftl_damping, int64_t integrity_model, bool angular, bool angular_reaction,
-    bool implicit_angular, bool geometric_stiffness, bool inextensibility, bool hermite, int64_t assemble_substep,
+    at::TensorList state, const std::optional<at::Tensor>& ext, at::TensorList model,
+        at::TensorList poses AMS_FRAME_SETTINGS_PARAMS, bool hermite, int64_t assemble_substep,
     at::TensorList finish_pose) {
   constexpr const char* op = "ams_torch_frame_cuda::frame_finish";
-  const FrameInputs in = check_frame_inputs(op, state, ext, model, poses, dt, substeps, ftl_damping, integrity_model,
-                                            angular, angular_reaction, implicit_angular, geometric_stiffness,
-                                            inextensibility, hermite, assemble_substep);
+  const FrameInputs in = check_frame_inputs(op, state, ext, model, poses AMS_FRAME_SETTINGS_ARGS, hermite,
+      assemble_substep);
   return frame_impl(op, in, &finish_pose);
 }
 
 std::tuple<at::Tensor, at::Tensor> frame_contact_cuda_op(
-    at::TensorList state, const std::optional<at::Tensor>& ext, at::TensorList model, at::TensorList poses, double dt,
-    int64_t substeps, double ftl_damping, int64_t integrity_model, bool angular, bool angular_reaction,
-    bool implicit_angular, bool geometric_stiffness, bool inextensibility, bool hermite, at::TensorList tensors,
+    at::TensorList state, const std::optional<at::Tensor>& ext, at::TensorList model,
+        at::TensorList poses AMS_FRAME_SETTINGS_PARAMS, bool hermite, at::TensorList tensors,
     at::TensorList collider_poses, c10::IntArrayRef ints, c10::ArrayRef<double> floats) {
   constexpr const char* op = "ams_torch_frame_cuda::frame_contact";
-  const FrameInputs in = check_frame_inputs(op, state, ext, model, poses, dt, substeps, ftl_damping, integrity_model,
-                                            angular, angular_reaction, implicit_angular, geometric_stiffness,
-                                            inextensibility, hermite, -1);
+  const FrameInputs in = check_frame_inputs(op, state, ext, model, poses AMS_FRAME_SETTINGS_ARGS, hermite, -1);
   const at::Tensor& x = in.state[kX];
   TORCH_CHECK(x.is_cuda(), op, ": CUDA tensors expected");
   const c10::cuda::CUDAGuard guard(x.device());
