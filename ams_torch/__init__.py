@@ -14,9 +14,10 @@ Everything else lives in the subpackages, which import downwards only (no cycles
     apps      motion, scene files, recipes, dataset generation and reading, render, CLI
     grooms    Groom, growth and presets, the default head, file formats (io)      → geometry
     sim       Params, Model, State/Control/Config, forces, assembly, step, Simulator
-                                                                 → stages, solver, geometry
-    stages    collisions (colliders), hair–hair grid, wind                        → geometry
-    solver    the banded strand solve, its op and native kernels
+                                                          → stages, solver, native, geometry
+    stages    collisions (colliders), hair–hair grid, wind                → geometry, native
+    solver    the banded strand solve and its op                                  → native
+    native    lazy build and cache of the C++/CUDA kernels (csrc/), CUDA emulation
     geometry  Pose, SDF grids, mesh loading
 """
 from ams_torch import apps, geometry, grooms, sim, solver, stages
@@ -24,11 +25,11 @@ from ams_torch.geometry.pose import Pose
 from ams_torch.grooms.presets import preset
 from ams_torch.grooms.head import default_head
 from ams_torch.grooms.io import read_groom, write_groom
+from ams_torch.native.build import native_status
 from ams_torch.sim.params import Params
 from ams_torch.sim.simulator import Simulator
 from ams_torch.sim.state import State
 from ams_torch.sim.step import SimulationDiverged
-from ams_torch.solver.build import native_status
 from ams_torch.stages.collide import MeshCollider
 from ams_torch.stages.hair_hair import HairHair
 

@@ -42,7 +42,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from ams_torch._bench import machine, shown_args, sync  # noqa: E402
 from ams_torch.geometry.pose import Pose  # noqa: E402
-from ams_torch.solver import build as _native  # noqa: E402
+from ams_torch.native import build as _native  # noqa: E402
 from ams_torch.stages.hair_hair import HairHair, hair_hair_stage  # noqa: E402
 from ams_torch.stages.hair_hair.pressure import pressure_torch  # noqa: E402
 from ams_torch.stages.hair_hair.sparse import p2g_sparse  # noqa: E402

@@ -40,7 +40,8 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from ams_torch.solver import build as _native, op as ops  # noqa: E402
+from ams_torch.native import build as _native  # noqa: E402
+from ams_torch.solver import op as ops  # noqa: E402
 from ams_torch._bench import machine_info, median_ms, shown_args  # noqa: E402
 from ams_torch.solver.reference import banded_to_dense, solve_banded_plain  # noqa: E402
 

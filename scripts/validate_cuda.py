@@ -77,7 +77,7 @@ def step_preflight(ctx: dict) -> dict:
     import torch
     from torch.utils import cpp_extension
 
-    from ams_torch.solver import ptxas
+    from ams_torch.native import ptxas
 
     info = {"torch": torch.__version__, "torch_cuda": torch.version.cuda, "python": platform.python_version(),
             "cuda_available": torch.cuda.is_available(), "ninja": cpp_extension.is_ninja_available(),
@@ -122,7 +122,7 @@ def step_preflight(ctx: dict) -> dict:
 
 
 def _kinds(dry: bool) -> list:
-    from ams_torch.solver import build
+    from ams_torch.native import build
 
     cpu = build.kinds("cpu")
     other = build.kinds("emulation") if dry else build.kinds("cuda")
@@ -130,7 +130,7 @@ def _kinds(dry: bool) -> list:
 
 
 def step_build(ctx: dict) -> dict:
-    from ams_torch.solver import build
+    from ams_torch.native import build
 
     kinds = _kinds(ctx["dry"])
     if ctx["dry"]:  # the shared cache, in this process (make test has built them already)
@@ -141,7 +141,7 @@ def step_build(ctx: dict) -> dict:
     else:  # an empty cache, one process per backend, in parallel
         jobs = max(1, (os.cpu_count() or 4) // max(1, min(len(kinds), 6)))
         env = dict(os.environ, MAX_JOBS=str(jobs))
-        code = ("import json, sys; from ams_torch.solver import build; k = sys.argv[1]; build.native_ops(k); "
+        code = ("import json, sys; from ams_torch.native import build; k = sys.argv[1]; build.native_ops(k); "
                 "print(json.dumps(build.native_status()[k]))")
 
         def one(kind):
@@ -366,7 +366,7 @@ def step_graph(ctx: dict) -> dict:
 def step_ptxas(ctx: dict) -> dict:
     import torch
 
-    from ams_torch.solver import ptxas
+    from ams_torch.native import ptxas
 
     nvcc = ptxas.find_nvcc()
     if nvcc is None:

@@ -20,7 +20,7 @@ def built_native(kind: str):
     """The torch.ops namespace of native backend ``kind`` ("frame_cpu", "collide_cpu", "grid_cpu"),
     built or loaded from the cache: skips when AMS_TORCH_NATIVE=0, fails naming the build error
     when it did not build (a CPU build is required wherever the tests run)."""
-    from ams_torch.solver import build
+    from ams_torch.native import build
 
     if not build.native_enabled():
         pytest.skip("AMS_TORCH_NATIVE=0: native kernels disabled")

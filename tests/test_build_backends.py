@@ -20,8 +20,8 @@ import pytest
 import torch
 from conftest import built_native
 
-from ams_torch.solver import build as _native
-from ams_torch.solver.cuda_arch import nvcc_arches, parse_arch_list, resolve_arch_list
+from ams_torch.native import build as _native
+from ams_torch.native.cuda_arch import nvcc_arches, parse_arch_list, resolve_arch_list
 
 REPO = Path(__file__).resolve().parents[1]
 SCENE = """
@@ -29,7 +29,7 @@ import json, os, sys, warnings
 import torch
 import ams_torch
 from ams_torch import testing
-from ams_torch.solver import build
+from ams_torch.native import build
 from ams_torch.stages.collide import SphereCollider
 from ams_torch.stages.hair_hair import HairHair
 rest = testing.sphere_groom(12, 8, dtype=torch.float64)
@@ -147,7 +147,7 @@ def test_failed_smoke_test_makes_the_backend_unavailable(tmp_path):
     unavailable, with the probe's error as the reason, and warned about once."""
     built_native("cpu")
     out = _run("""
-        from ams_torch.solver import probes
+        from ams_torch.native import probes
         real = probes.probe
         def broken(kind, ns, device):
             if kind == "cpu":
@@ -170,7 +170,7 @@ def test_failed_smoke_test_makes_the_backend_unavailable(tmp_path):
 TOY = """
 import json, os, sys, warnings
 from pathlib import Path
-from ams_torch.solver import build
+from ams_torch.native import build
 root = Path(sys.argv[1])
 build.CSRC_ROOT = root / "csrc"  # a backend of one small C++ file (no torch headers: builds in a second)
 build._ALL["toy_cpu"] = ("ams_torch_toy_cpu", ("toy/toy.cpp",), (), "ams_torch_toy_cpu", "cpu")
@@ -291,7 +291,7 @@ def test_cache_key_covers_every_header_a_build_reads(tmp_path, monkeypatch):
     every backend that reads it, and of no other."""
     import shutil
 
-    from ams_torch.solver import build
+    from ams_torch.native import build
 
     copy = tmp_path / "csrc"
     shutil.copytree(build.CSRC_ROOT, copy)
@@ -304,3 +304,43 @@ def test_cache_key_covers_every_header_a_build_reads(tmp_path, monkeypatch):
         fh.write("\n// touched\n")
     after = {k: build.build_tag(k, key) for k in build._BACKENDS}
     assert {k for k in before if before[k] != after[k]} == readers
+
+
+def test_includes_are_path_qualified(tmp_path, monkeypatch):
+    """Every csrc/ include names its file from csrc/ (the one include directory); an include written
+    relative to the includer's folder, which the compiler would still find, is refused by the
+    include closure (it would read a file that the cache key does not hash)."""
+    from ams_torch.native import build
+
+    for spec in {**build._BACKENDS, **build._SELFTEST}.values():
+        for rel in spec[1] + spec[2]:
+            for inc in build._INCLUDE.findall((build.CSRC_ROOT / rel).read_text()):
+                assert not (build.CSRC_ROOT / rel).parent.joinpath(inc).is_file() or "/" in inc, (rel, inc)
+    copy = tmp_path / "csrc"
+    shutil.copytree(build.CSRC_ROOT, copy)
+    monkeypatch.setattr(build, "CSRC_ROOT", copy)
+    src = copy / "frame" / "frame_cpu.cpp"
+    src.write_text(src.read_text().replace('#include "frame/ftl.h"', '#include "ftl.h"')
+                   .replace('#include "frame/frame.h"', '#include "frame.h"'))
+    with pytest.raises(ValueError, match="relative to its folder"):
+        build.include_closure(("frame/frame_cpu.cpp",))
+
+
+@pytest.mark.parametrize("backend,contact,colliders,hair_hair,grad,want", [
+    ("torch", "frame", 0, False, False, "torch"),
+    ("torch", "substep", 2, True, True, "torch"),
+    ("native", "frame", 0, False, False, "native_finish"),
+    ("native", "frame", 1, False, False, "native"),
+    ("native", "frame", 0, True, False, "native"),
+    ("native", "substep", 1, False, False, "native_contact"),
+    ("native", "substep", 0, False, False, "native_finish"),  # substep contact without colliders: none
+    ("native", "frame", 1, True, True, "native_adjoint"),
+    ("native", "substep", 1, False, True, "torch"),  # substep contact has no native adjoint
+])
+def test_frame_route(backend, contact, colliders, hair_hair, grad, want):
+    """The one decision of how a frame's dynamics run (sim.backends.frame_route)."""
+    from ams_torch.sim.backends import FRAME_ROUTES, frame_route
+    from ams_torch.sim.state import Config
+
+    cfg = Config(dt=0.02, backend=backend, contact=contact, follow_head=(False,) * colliders, hair_hair=hair_hair)
+    assert frame_route(cfg, grad) == want and want in FRAME_ROUTES

@@ -1,5 +1,5 @@
 """The CUDA kernels, run on the CPU: every CUDA backend of the build table (its .cu files and its torch
-binding) compiled as host code by the emulation (``ams_torch/solver/emulation.py``,
+binding) compiled as host code by the emulation (``ams_torch/native/emulation.py``,
 ``csrc/emulation/cuda_emulation.h``), against the CPU kernels (and the emulator's self-test).
 
 What this shows: the CUDA launchers, kernels and bindings compute what the CPU kernels compute, for
@@ -36,7 +36,7 @@ from test_native_grid import _solve_args, squeeze_scene, tol as grid_tol
 from test_native_solver import strand_system
 
 from ams_torch.sim import native
-from ams_torch.solver import build as _native
+from ams_torch.native import build as _native
 from ams_torch.solver.reference import solve_banded_dense
 from ams_torch.stages.collide import resolve_world_poses
 from ams_torch.stages.hair_hair.sparse import densify, p2g_sparse
@@ -318,7 +318,7 @@ def test_selftest_shared_memory_and_atomics(emu, emu_env):
 
 @pytest.mark.parametrize("pattern", ["one_address", "few", "distinct", "strands"])
 def test_selftest_warp_aggregated_add(emu, emu_env, pattern):
-    """The warp-aggregated atomic add of cuda_common/ (P2G's): every pattern of shared addresses in a
+    """The warp-aggregated atomic add of common/ (P2G's): every pattern of shared addresses in a
     warp, a partial last warp, grid-stride tails."""
     emu_env(max_grid=2)
     n = 1000

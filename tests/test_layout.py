@@ -10,11 +10,12 @@ ROOT = Path(__file__).resolve().parents[1] / "ams_torch"
 #: what each subpackage may import (besides itself)
 ALLOWED = {
     "geometry": set(),
-    "solver": set(),
-    "stages": {"geometry", "solver"},
+    "native": set(),
+    "solver": {"native"},
+    "stages": {"geometry", "solver", "native"},
     "grooms": {"geometry"},
-    "sim": {"stages", "solver", "geometry"},
-    "apps": {"sim", "stages", "solver", "geometry", "grooms", "top"},
+    "sim": {"stages", "solver", "native", "geometry"},
+    "apps": {"sim", "stages", "solver", "native", "geometry", "grooms", "top"},
 }
 
 

@@ -2,7 +2,7 @@
 
 The torch definition is ``ams_torch.sim.step.collisions`` (the contact response of every collider
 in order, then follow-the-leader and push-out rounds); the native kernel is
-``ams_torch/solver/csrc/collide``, built once per session. Tolerance: float64 1e-10 relative
+``ams_torch/native/csrc/collide``, built once per session. Tolerance: float64 1e-10 relative
 (measured: ~1e-16). The kernel computes σ, the normals and the response with the torch code's
 formulas in its operation order, without fused multiply-adds, and the mesh grid's trilinear
 sample corner by corner as ``grid_sample`` sums it (bit-identical on CPU); what remains is the
@@ -31,7 +31,7 @@ from ams_torch.sim import native
 from ams_torch.sim.dynamics import frame_dynamics
 from ams_torch.sim.model import coefficients
 from ams_torch.sim.step import collisions
-from ams_torch.solver import build as _native
+from ams_torch.native import build as _native
 from ams_torch.stages.collide import (
     CapsuleCollider,
     HollowSphereCollider,

@@ -1,7 +1,7 @@
 """Fused native frame of strand dynamics (SPEC §15): torch definition vs native CPU (vs CUDA).
 
 The torch definition is ``ams_torch.sim.dynamics.frame_dynamics`` with ``assembly.assemble_system``;
-the native kernel (``ams_torch/solver/csrc/frame``) is built once per session (``native`` fixture,
+the native kernel (``ams_torch/native/csrc/frame``) is built once per session (``native`` fixture,
 cached across runs). Tolerances:
 
 * assembly, term by term, float64: the native contribution of each term agrees with the torch one to
@@ -37,7 +37,7 @@ from ams_torch.sim.op_support import pose_tensors
 from ams_torch.sim.dynamics import frame_dynamics, substep_system
 from ams_torch.sim.model import coefficients
 from ams_torch.sim.step import resolve_pose
-from ams_torch.solver import build as _native
+from ams_torch.native import build as _native
 
 REPO = Path(__file__).resolve().parents[1]
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
@@ -590,7 +590,7 @@ _FALLBACK_SCRIPT = textwrap.dedent(
     from ams_torch.sim import native
     from ams_torch.sim.dynamics import frame_dynamics
     from ams_torch.sim.step import collisions
-    from ams_torch.solver import build
+    from ams_torch.native import build
     from ams_torch.stages.collide import resolve_world_poses
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -650,3 +650,37 @@ def test_cuda_matches_cpu(native_cpu, case, dtype):
     (xc, vc), (bc, rc) = out["cpu"]
     (xg, vg), (bg, rg) = out["cuda"]
     assert rel(xg, xc) <= tol and rel(vg, vc) <= tol and rel(bg, bc) <= tol and rel(rg, rc) <= tol
+
+
+def test_python_tables_match_the_binding():
+    """The op's model list (``native.MODEL_LAYOUT``) and settings (``FrameSettings``) are read by the
+    C++ binding positionally: their order must be the binding's (``kModelNames`` of
+    ``csrc/frame/frame_binding.h``; the settings' X-macro ``AMS_FRAME_SETTINGS`` of ``csrc/frame/frame.h``,
+    from which the C++ struct, schemas and parameters are made). Two same-shape fields swapped on
+    one side would pass every shape check; this catches it."""
+    import re
+
+    from ams_torch.sim.op_support import FrameSettings
+
+    text = (_native.CSRC_ROOT / "frame" / "frame_binding.h").read_text()
+    names = re.search(r"kModelNames\[kModelCount\]\s*=\s*\{(.*?)\};", text, re.S).group(1)
+    assert tuple(re.findall(r'"(\w+)"', names)) == native.MODEL_FIELDS
+    settings = (_native.CSRC_ROOT / "frame" / "frame.h").read_text()
+    listed = re.search(r"#define AMS_FRAME_SETTINGS\(X\)(.*?)\n\n", settings, re.S).group(1)
+    types = {"float": "double", "int": "int64_t", "bool": "bool"}  # the schema type's C++ parameter
+    rows = re.findall(r'X\((\w+), (\w+), (\w+), "(\w+)"\)', listed)
+    assert [r[1] for r in rows] == list(FrameSettings._fields)
+    assert all(types[r[3]] == r[2] for r in rows), rows
+
+
+def test_frame_settings_round_trip_config():
+    """FrameSettings.of(config).config() is the config's frame settings (integrity model by name)."""
+    from ams_torch.sim.op_support import FrameSettings
+    from ams_torch.sim.state import Config
+
+    cfg = Config(dt=0.02, substeps=3, integrity_model="nonhookean", angular=False, geometric_stiffness=True,
+                 ftl_damping=0.7)
+    s = FrameSettings.of(cfg)
+    assert s.integrity_model == 2 and s.substeps == 3 and s.geometric_stiffness is True
+    back = s.config()
+    assert all(getattr(back, f) == getattr(cfg, f) for f in FrameSettings._fields)

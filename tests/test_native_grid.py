@@ -33,7 +33,7 @@ from conftest import built_native
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from ams_torch.geometry.pose import Pose
-from ams_torch.solver import build as _native
+from ams_torch.native import build as _native
 from ams_torch.stages.hair_hair import HairHair, hair_hair_stage
 from ams_torch.stages.hair_hair.native import g2p_op, p2g_op, pressure_op
 from ams_torch.stages.hair_hair.pressure import pressure_torch

@@ -19,11 +19,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from ams_torch.solver import build as _native, op as ops
+from ams_torch.native import build as _native
+from ams_torch.solver import op as ops
 from ams_torch.solver.reference import banded_matvec, banded_to_dense, solve_banded_dense, solve_banded_plain
 
 REPO = Path(__file__).resolve().parents[1]
-CSRC = REPO / "ams_torch" / "solver" / "csrc" / "banded"
+CSRC = REPO / "ams_torch" / "native" / "csrc" / "banded"
 CSRC_ROOT = CSRC.parent
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 H = 1.0 / 60.0  # time step of the assembled systems, s
@@ -270,7 +271,8 @@ _FALLBACK_SCRIPT = textwrap.dedent(
     sys.path.insert(0, {tests!r})
     import torch
     from test_native_solver import strand_system
-    from ams_torch.solver import build as _native, op as ops
+    from ams_torch.native import build as _native
+    from ams_torch.solver import op as ops
     from ams_torch.solver.reference import solve_banded_plain
 
     def scenario(env):
@@ -312,7 +314,7 @@ def test_fallback_without_native(tmp_path):
 
 CUDA_SOURCES = sorted(CSRC_ROOT.glob("*/*.cu"))
 CUDA_BINDINGS = sorted(CSRC_ROOT.glob("*/*_cuda_binding.cpp"))
-INCLUDE_DIRS = [f"-I{d}" for d in sorted(CSRC_ROOT.iterdir()) if d.is_dir()]
+INCLUDE_DIRS = [f"-I{CSRC_ROOT}"]
 
 
 def _local_includes(path: Path, seen=None) -> list:
@@ -323,12 +325,10 @@ def _local_includes(path: Path, seen=None) -> list:
         if not line.startswith("#include"):
             continue
         out.append(line)
-        name = line.split()[1].strip('"<>')
-        for d in CSRC_ROOT.iterdir():
-            h = d / name
-            if d.is_dir() and h.exists() and h not in seen:
-                seen.add(h)
-                out += _local_includes(h, seen)
+        h = CSRC_ROOT / line.split()[1].strip('"<>')
+        if h.is_file() and h not in seen:
+            seen.add(h)
+            out += _local_includes(h, seen)
     return out
 
 
@@ -397,7 +397,7 @@ def test_lock_of_killed_builder_is_broken(tmp_path):
         f"""
         import sys, time
         from pathlib import Path
-        from ams_torch.solver.build import build_lock
+        from ams_torch.native.build import build_lock
         d = Path({str(tmp_path)!r})
         with build_lock(d):
             (d / "lock").write_text("")  # torch's FileBaton, as cpp_extension.load leaves it

@@ -1,10 +1,10 @@
 """Registers, spills, stack and shared memory of every CUDA kernel (``nvcc -Xptxas -v``, no GPU needed)
-against the committed budget ``ams_torch/solver/csrc/cuda_common/ptxas_budget.json``, for each
+against the committed budget ``ams_torch/native/csrc/common/ptxas_budget.json``, for each
 architecture it names (sm_80, sm_90, sm_120). ptxas reports are cached by source, architecture and
 nvcc version, so only a changed kernel is recompiled.
 
 A kernel over its budget, spilling, or missing from it fails: if the change is deliberate, rewrite
-the budget (``python -m ams_torch.solver.ptxas --write-budget``) and say why in the commit.
+the budget (``python -m ams_torch.native.ptxas --write-budget``) and say why in the commit.
 """
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from ams_torch.solver import ptxas
+from ams_torch.native import ptxas
 
 SAMPLE = """\
 ptxas info    : 0 bytes gmem

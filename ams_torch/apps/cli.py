@@ -247,7 +247,7 @@ def _cmd_info(args) -> int:
     else:
         print("cuda: not available")
     try:
-        from ams_torch.solver import build as _native
+        from ams_torch.native import build as _native
 
         status = _native.native_status()
         print("native solver: " + ", ".join(f"{k}={v}" for k, v in status.items()))

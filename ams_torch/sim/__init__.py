@@ -2,7 +2,7 @@
 per physical term, the system assembly, the frame's dynamics, inextensibility, the pure frame step and the
 ``torch.nn.Module`` wrapper :class:`Simulator`.
 
-Imports :mod:`ams_torch.stages`, :mod:`ams_torch.solver` and :mod:`ams_torch.geometry`.
+Imports :mod:`ams_torch.stages`, :mod:`ams_torch.solver`, :mod:`ams_torch.native` and :mod:`ams_torch.geometry`.
 """
 from ams_torch.sim.model import Coefficients, Model, coefficients
 from ams_torch.sim.params import Params

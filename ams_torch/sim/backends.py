@@ -4,7 +4,7 @@ smoke tests of the fused ops' backends.
 :func:`resolve_backend` is the simulator's backend decision: it builds (or loads) every backend the
 configuration needs, raises for ``backend="native"`` naming each one that cannot be had and why,
 and otherwise falls back to the torch definition with one warning per backend
-(:mod:`ams_torch.solver.build`). The probes registered here (frame, collisions, grid) are what
+(:mod:`ams_torch.native.build`). The probes registered here (frame, collisions, grid) are what
 ``build`` runs right after loading such a backend: one tiny call compared with the torch definition.
 """
 from __future__ import annotations
@@ -17,14 +17,15 @@ from ams_torch.geometry.pose import Pose
 from ams_torch.sim.contact import collisions_world
 from ams_torch.sim.dynamics import frame_dynamics
 from ams_torch.sim.model import Model, coefficients
-from ams_torch.sim.native import _COLLIDE_KINDS, _KINDS, NATIVE_DTYPES, collision_arguments, op_arguments
+from ams_torch.sim.native import collision_arguments, op_arguments
 from ams_torch.sim.params import Params
 from ams_torch.sim.state import Config
-from ams_torch.solver import build as _native, probes
+from ams_torch.native import build as _native, probes
+from ams_torch.native.dispatch import NATIVE_DTYPES, native_kind
 from ams_torch.stages.collide import SphereCollider, resolve_world_poses
 from ams_torch.stages.hair_hair.sparse import densify, p2g_sparse
 
-__all__ = ["needed_backends", "resolve_backend"]
+__all__ = ["needed_backends", "resolve_backend", "frame_route", "FRAME_ROUTES"]
 
 F64 = torch.float64
 
@@ -32,13 +33,12 @@ F64 = torch.float64
 def needed_backends(device, hair_hair: bool = False, colliders: bool = False) -> Tuple[List[str], List[str]]:
     """The native backends a simulator on ``device`` uses: (required by ``backend="native"``, used
     when there: the banded solve of the torch path, which frames that keep a gradient take).
-    Kinds of :mod:`ams_torch.solver.build`: ``frame_<dev>``, ``collide_<dev>`` with colliders,
+    Kinds of :mod:`ams_torch.native.build`: ``frame_<dev>``, ``collide_<dev>`` with colliders,
     ``grid_<dev>`` with hair–hair interaction; ``cpu``/``cuda`` (the banded solve)."""
-    dev = torch.device(device).type
-    if dev not in _KINDS:
+    if native_kind("frame", device) is None:
         return [], []
-    required = [_KINDS[dev]] + ([_COLLIDE_KINDS[dev]] if colliders else []) + ([f"grid_{dev}"] if hair_hair else [])
-    return required, [dev]
+    groups = ["frame"] + (["collide"] if colliders else []) + (["grid"] if hair_hair else [])
+    return [native_kind(g, device) for g in groups], [native_kind("banded", device)]
 
 
 def resolve_backend(backend: str, device, dtype, hair_hair: bool = False, colliders: bool = False) -> str:
@@ -68,10 +68,40 @@ def resolve_backend(backend: str, device, dtype, hair_hair: bool = False, collid
         raise ValueError(f"backend='native' but {len(lacking)} native backend(s) it needs cannot be had: {detail} "
                          f"(ams_torch.native_status() has the details; backend='auto' runs the torch definition "
                          f"for them)")
-    return "torch" if _KINDS[dev] in missing else "native"
+    return "torch" if native_kind("frame", dev) in missing else "native"
 
 
-# -- smoke tests (registered with ams_torch.solver.probes) -----------------------------------------
+#: The ways a frame's strand dynamics run (:func:`frame_route`) and the entry point of each.
+FRAME_ROUTES = {
+    "torch": "ams_torch.sim.dynamics.frame_dynamics (the definition; with substep contact when configured)",
+    "native": "ams_torch.sim.native.native_frame_dynamics (the fused frame kernel)",
+    "native_finish": "ams_torch.sim.native.native_frame_dynamics(..., finish=, pinned=) (the frame's end fused in: "
+                     "nothing runs after the dynamics)",
+    "native_contact": "ams_torch.sim.native_contact.native_frame_contact (the contact response at every substep)",
+    "native_adjoint": "ams_torch.sim.native_grad.native_frame_dynamics_diff (native forward and adjoint)",
+}
+
+
+def frame_route(config: Config, needs_grad: bool) -> str:
+    """How this frame's strand dynamics run: the one decision, from the frozen config and whether an
+    input keeps a gradient (a key of :data:`FRAME_ROUTES`). A config whose backend is not "native"
+    runs the torch definition; a gradient frame of a native config runs the native forward and
+    adjoint (the torch definition with substep contact, which has no native adjoint); otherwise
+    the fused kernel with substep contact, or without, with the frame's end fused in when no stage
+    runs after the dynamics. Each entry point still sends the inputs its kernel cannot take (a
+    callable external force, another dtype, a collider class without kernels) to the torch
+    definition (:mod:`ams_torch.native.dispatch`)."""
+    if config.backend != "native":
+        return "torch"
+    contact = config.contact == "substep" and bool(config.colliders)
+    if needs_grad:
+        return "torch" if contact else "native_adjoint"
+    if contact:
+        return "native_contact"
+    return "native" if (config.hair_hair or config.colliders) else "native_finish"
+
+
+# -- smoke tests (registered with ams_torch.native.probes) -----------------------------------------
 
 def _tiny(device, colliders=()):
     """3 strands × 5 particles hanging at the origin, moving; (model, config, x, v, pose0, pose1)."""

@@ -3,7 +3,7 @@ particle's speed relative to the head is measured for the divergence flag.
 
 :func:`pin_and_speed` is the definition (torch). :func:`native_finish` runs it as one registered
 op, ``torch.ops.ams_torch.finish``, whose CPU and CUDA kernels (``csrc/frame/finish.h``, in the
-frame backends ``frame_cpu`` / ``frame_cuda`` of :mod:`ams_torch.solver.build`) do the same
+frame backends ``frame_cpu`` / ``frame_cuda`` of :mod:`ams_torch.native.build`) do the same
 arithmetic in one pass over the particles: the torch definition is five whole-array passes
 (cross product, sum, select, difference, norm) that cost as much as the fused frame kernel
 itself at 10k × 32 on a CPU. Anything the kernels cannot take (a gradient to keep, another
@@ -16,12 +16,10 @@ from typing import List, Tuple
 import torch
 
 from ams_torch.geometry.pose import Pose
-from ams_torch.sim.op_support import NATIVE_DTYPES, pose_tensors
-from ams_torch.solver import build as _native
+from ams_torch.native.dispatch import native_inputs, native_namespace
+from ams_torch.sim.op_support import pose_tensors
 
 __all__ = ["pin_and_speed", "native_finish", "native_finish_supported", "finish_op"]
-
-_KINDS = {"cpu": "frame_cpu", "cuda": "frame_cuda"}
 
 
 def pin_and_speed(x: torch.Tensor, v: torch.Tensor, pinned: torch.Tensor, pose: Pose) -> tuple:
@@ -67,9 +65,7 @@ def finish_op(x: torch.Tensor, v: torch.Tensor, num_pinned: torch.Tensor,
 
 
 def _finish_kernel(x, v, num_pinned, pose):
-    ns = None
-    if x.dtype in NATIVE_DTYPES and not any(t.requires_grad for t in (x, v, *pose)):
-        ns = _native.native_ops(_KINDS[x.device.type])
+    ns = native_namespace("frame", x, (x, v, *pose))
     if ns is None:
         return _finish_torch(x, v, num_pinned, pose)
     return tuple(ns.finish(x, v, num_pinned, pose))
@@ -88,10 +84,9 @@ def native_finish_supported(x: torch.Tensor, v: torch.Tensor, pose: Pose) -> boo
     """Whether the finish kernels take these inputs (traceable: Python checks of dtypes, devices,
     flags and ``requires_grad`` only): float32/float64 on CPU/CUDA, a pose with velocities, and
     no gradient to keep."""
-    if x.dtype not in NATIVE_DTYPES or x.device.type not in _KINDS or not pose.has_velocity or v.dtype != x.dtype:
+    if not pose.has_velocity or v.dtype != x.dtype:
         return False
-    tensors = (x, v, pose.translation, pose.linear_velocity, pose.angular_velocity)
-    return not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
+    return native_inputs(x, (x, v, pose.translation, pose.linear_velocity, pose.angular_velocity))
 
 
 def native_finish(model, x: torch.Tensor, v: torch.Tensor, pose: Pose) -> tuple:

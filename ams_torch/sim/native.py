@@ -9,10 +9,10 @@ every scene, in one call of the registered op ``torch.ops.ams_torch.frame_dynami
 * default implementation (any device): the torch definition, ``frame_dynamics`` itself, called
   through a light adapter that rebuilds the model, coefficients, config and poses from the op's
   tensors and numbers;
-* CPU and CUDA: the native kernels of ``ams_torch/solver/csrc/frame`` (backends ``frame_cpu`` and
-  ``frame_cuda`` of :mod:`ams_torch.solver.build`), built lazily on first use, float32 and
+* CPU and CUDA: the native kernels of ``ams_torch/native/csrc/frame`` (backends ``frame_cpu`` and
+  ``frame_cuda`` of :mod:`ams_torch.native.build`), built lazily on first use, float32 and
   float64; otherwise (not built, ``AMS_TORCH_NATIVE=0``, another dtype, an input requiring grad)
-  the torch definition, with one :class:`~ams_torch.solver.build.NativeBuildWarning` per process
+  the torch definition, with one :class:`~ams_torch.native.build.NativeBuildWarning` per process
   when a build fails;
 * ``register_fake``: shapes for ``torch.compile`` and meta tensors. No autograd formula: the
   entry point sends anything that needs a gradient to the torch definition.
@@ -35,22 +35,29 @@ the same structure (torch default, CPU/CUDA kernels, fake); see the second half 
 """
 from __future__ import annotations
 
+import itertools
 from functools import partial
 from math import isnan, nan
 from types import SimpleNamespace
-from typing import List, Optional, Tuple
+from typing import Callable, List, NamedTuple, Optional, Tuple
 
 import torch
 
 from ams_torch.geometry.pose import Pose
 from ams_torch.geometry.sdf import SDFGrid
+from ams_torch.native.dispatch import native_available, native_inputs, native_kind, native_namespace
 from ams_torch.sim.contact import collisions_world
 from ams_torch.sim.dynamics import frame_dynamics, substep_system
 from ams_torch.sim.finish import _finish_torch, native_finish_supported, pin_and_speed
-from ams_torch.sim.op_support import NATIVE_DTYPES, as_like as _as, pose_tensors as _pose_tensors
+from ams_torch.sim.op_support import (
+    NATIVE_DTYPES,
+    FrameSettings,
+    as_like as _as,
+    frame_op_schema,
+    pose_tensors as _pose_tensors,
+)
 from ams_torch.sim.model import Coefficients, Model
 from ams_torch.sim.state import Config, ExternalForce
-from ams_torch.solver import build as _native
 from ams_torch.stages.collide import (
     CapsuleCollider,
     HollowSphereCollider,
@@ -63,15 +70,24 @@ __all__ = ["NATIVE_DTYPES", "native_frame_available", "native_frame_supported", 
            "native_frame_assembly", "frame_dynamics_op", "frame_assembly_op", "native_collisions_available",
            "native_collisions_supported", "native_collisions", "collisions_world", "collisions_op"]
 
-_KINDS = {"cpu": "frame_cpu", "cuda": "frame_cuda"}
-_INTEGRITY = {"none": 0, "hookean": 1, "nonhookean": 2}
-_INTEGRITY_NAMES = {v: k for k, v in _INTEGRITY.items()}
+_SETTINGS = len(FrameSettings._fields) + 1  # the op's scalars: FrameSettings, then hermite
 
 #: Order of the op's tensor lists (shapes: ``frame_binding.h``).
 STATE_FIELDS = ("x", "v", "ghost_rest", "sag_offset")
-MODEL_FIELDS = ("rest_positions", "mass", "drag", "edge", "bend", "torsion", "integrity", "angular", "transition",
-                "breaking", "soft_ratio", "edge_rest_length", "bend_rest_length", "torsion_rest_length",
-                "segment_length", "num_pinned", "gravity")
+#: The op's model list, the one table of it on the Python side: (field, whose attribute it is:
+#: the Coefficients' or the Model's, k for a per-term coefficient expanded to (S, N − k), None to
+#: pass as it is). The bindings read it in this order (``kModelNames`` of ``frame_binding.h``;
+#: ``tests/test_native_frame.py`` checks the two agree); :func:`op_arguments` and ``_rebuild``
+#: are made from it.
+MODEL_LAYOUT = (
+    ("rest_positions", "model", None), ("mass", "coeffs", 0), ("drag", "coeffs", 0), ("edge", "coeffs", 1),
+    ("bend", "coeffs", 2), ("torsion", "coeffs", 3), ("integrity", "coeffs", 0), ("angular", "coeffs", 1),
+    ("transition", "coeffs", None), ("breaking", "coeffs", None), ("soft_ratio", "coeffs", None),
+    ("edge_rest_length", "model", None), ("bend_rest_length", "model", None), ("torsion_rest_length", "model", None),
+    ("segment_length", "model", None), ("num_pinned", "model", None), ("gravity", "model", None),
+)
+MODEL_FIELDS = tuple(f for f, _, _ in MODEL_LAYOUT)
+_SCALAR_COEFFS = tuple(f for f, src, k in MODEL_LAYOUT if src == "coeffs" and k is None)  # () tensors
 POSE_FIELDS = ("rotation0", "translation0", "linear_velocity0", "rotation1", "translation1", "linear_velocity1")
 
 
@@ -79,7 +95,7 @@ def _eager_or_op(op, kernel, x: torch.Tensor, *args):
     """``kernel(*args)`` directly in eager mode on CPU/CUDA (the registered op's own CPU/CUDA
     kernel, skipping ~12 µs of custom-op dispatch; callers reach here only when nothing needs a
     gradient), the registered ``op(*args)`` under torch.compile (its fake, its schema)."""
-    if x.device.type in _KINDS and not torch.compiler.is_compiling():
+    if native_kind("frame", x.device) is not None and not torch.compiler.is_compiling():
         return kernel(*args)
     return op(*args)
 
@@ -89,17 +105,17 @@ def native_frame_available(device, dtype) -> bool:
     """Whether the native frame kernel runs for tensors of ``device`` and ``dtype`` (builds it on
     first call; False when it cannot be built, when ``AMS_TORCH_NATIVE=0``, or for dtypes other
     than float32/float64). Not traceable: decide it when the simulator is built."""
-    kind = _KINDS.get(torch.device(device).type)
-    return kind is not None and dtype in NATIVE_DTYPES and _native.native_ops(kind) is not None
+    return native_available("frame", device, dtype)
 
 
 def _tensors_of(coeffs: Coefficients, x, v, ghost_rest, sag_offset, pose0: Pose, pose1: Pose, external_force):
-    out = [x, v, ghost_rest, sag_offset] + [c for c in coeffs if isinstance(c, torch.Tensor)]
+    """Every tensor input of a frame (a generator: read only while grad mode is on)."""
+    yield from (x, v, ghost_rest, sag_offset)
+    yield from (c for c in coeffs if isinstance(c, torch.Tensor))
     for p in (pose0, pose1):
-        out += [t for t in (p.rotation, p.translation, p.linear_velocity, p.angular_velocity) if t is not None]
+        yield from (p.rotation, p.translation, p.linear_velocity, p.angular_velocity)
     if isinstance(external_force, torch.Tensor):
-        out.append(external_force)
-    return out
+        yield external_force
 
 
 def native_frame_supported(model: Model, coeffs: Coefficients, x: torch.Tensor, v: torch.Tensor,
@@ -114,35 +130,27 @@ def native_frame_supported(model: Model, coeffs: Coefficients, x: torch.Tensor, 
     """
     if external_force is not None and not isinstance(external_force, torch.Tensor):
         return False
-    if x.dtype not in NATIVE_DTYPES or x.device.type not in _KINDS or model.rest_positions.dtype != x.dtype:
+    if model.rest_positions.dtype != x.dtype:
         return False
-    if torch.is_grad_enabled():
-        tensors = _tensors_of(coeffs, x, v, ghost_rest, sag_offset, pose0, pose1, external_force)
-        if any(t.requires_grad for t in tensors):
-            return False
-    return True
+    return native_inputs(x, _tensors_of(coeffs, x, v, ghost_rest, sag_offset, pose0, pose1, external_force))
 
 
 # -- the torch definition behind the op -------------------------------------------------------
-def _rebuild(state, external_force, model, poses, dt, substeps, ftl_damping, integrity_model, angular,
-             angular_reaction, implicit_angular, geometric_stiffness, inextensibility, hermite):
+def _rebuild(state, external_force, model, poses, *settings):
     """Model-, coefficient-, config- and pose-like objects for the torch definition, from the op's
-    arguments (no host sync)."""
-    (rest, mass, drag, edge, bend, torsion, integrity, angular_k, transition, breaking, soft_ratio, l1, l2, l3,
-     segment, num_pinned, gravity) = model
+    arguments (``settings``: the :class:`FrameSettings` fields, then hermite; no host sync)."""
+    config, hermite = FrameSettings(*settings[:-1]).config(), settings[-1]
+    fields = dict(zip(MODEL_FIELDS, model))
+    rest, num_pinned = fields["rest_positions"], fields["num_pinned"]
+    l1, l2, l3 = fields["edge_rest_length"], fields["bend_rest_length"], fields["torsion_rest_length"]
     n = rest.shape[-2]
     pinned = torch.arange(n, device=rest.device)[None, :] < num_pinned[:, None]
     # has_pinned=True is exact for a model without pinned particles too (A·0 and blocks·1 change nothing)
     mview = SimpleNamespace(rest_positions=rest, edge_rest_length=l1, bend_rest_length=l2, torsion_rest_length=l3,
-                            rest_lengths=(l1, l2, l3), segment_length=segment, pinned=pinned,
-                            num_pinned=num_pinned, has_pinned=True, gravity=gravity)
-    coeffs = Coefficients(mass=mass, drag=drag, edge=edge, bend=bend, torsion=torsion, integrity=integrity,
-                          angular=angular_k, transition=transition.reshape(()), breaking=breaking.reshape(()),
-                          soft_ratio=soft_ratio.reshape(()))
-    config = Config(dt=dt, substeps=substeps, integrity_model=_INTEGRITY_NAMES[integrity_model], angular=angular,
-                    angular_reaction=angular_reaction, implicit_angular=implicit_angular,
-                    geometric_stiffness=geometric_stiffness, inextensibility=inextensibility,
-                    ftl_damping=ftl_damping)
+                            rest_lengths=(l1, l2, l3), segment_length=fields["segment_length"], pinned=pinned,
+                            num_pinned=num_pinned, has_pinned=True, gravity=fields["gravity"])
+    coeffs = Coefficients(**{f: fields[f].reshape(()) if f in _SCALAR_COEFFS else fields[f]
+                             for f in Coefficients._fields})
     batch = state[0].shape[:-3]
     pose_list = []
     for r, t, u in (poses[:3], poses[3:]):
@@ -170,9 +178,7 @@ def _assembly_torch(state, external_force, model, poses, *settings_and_substep):
 
 def _namespace(x: torch.Tensor, tensors) -> Optional[object]:
     """The native namespace for x's device, or None (torch definition)."""
-    if x.dtype not in NATIVE_DTYPES or any(t.requires_grad for t in tensors):
-        return None
-    return _native.native_ops(_KINDS[x.device.type])
+    return native_namespace("frame", x, tensors)
 
 
 def _all_tensors(state, external_force, model, poses):
@@ -180,32 +186,28 @@ def _all_tensors(state, external_force, model, poses):
 
 
 # -- the registered ops --------------------------------------------------------------------------
-@torch.library.custom_op("ams_torch::frame_dynamics", mutates_args=())
-def frame_dynamics_op(state: List[torch.Tensor], external_force: Optional[torch.Tensor], model: List[torch.Tensor],
-                      poses: List[torch.Tensor], dt: float, substeps: int, ftl_damping: float, integrity_model: int,
-                      angular: bool, angular_reaction: bool, implicit_angular: bool, geometric_stiffness: bool,
-                      inextensibility: bool, hermite: bool,
-                      finish_pose: List[torch.Tensor]) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+_FRAME_HEAD = "Tensor[] state, Tensor? external_force, Tensor[] model, Tensor[] poses"
+
+
+@torch.library.custom_op("ams_torch::frame_dynamics", mutates_args=(), schema=frame_op_schema(
+    _FRAME_HEAD, "bool hermite, Tensor[] finish_pose", "(Tensor, Tensor, Tensor)"))
+def frame_dynamics_op(state, external_force, model, poses, *settings_and_finish):
     """Registered op ``ams_torch::frame_dynamics``; default (any device): the torch definition.
 
     state: [x, v, ghost_rest, sag_offset], each (..., S, N, 3) m, m/s, m (head frame), m (head
     frame); external_force: (..., S, N, 3) N or None; model: the tensors of ``MODEL_FIELDS``
     (``frame_binding.h`` has their shapes: per-term coefficients (S, N−k), rest data, num_pinned
     (S,) int64, gravity (3,) m/s²); poses: [R0 (P0, 3, 3), t0 (P0, 3) m, u0 (P0, 3) m/s, R1, t1,
-    u1] with P_j = 1 or the number of scenes (u read only with ``hermite``); dt s, substeps M,
-    ftl_damping, integrity_model 0 none / 1 Hookean / 2 non-Hookean, and the Config flags.
-    finish_pose: [] (none), or the frame's end fused in (``sim/finish.py``): [translation (P, 3) m,
-    linear (P, 3) m/s, angular velocity (P, 3) rad/s] of the head at the end of the frame.
+    u1] with P_j = 1 or the number of scenes (u read only with ``hermite``); the fields of
+    :class:`~ams_torch.sim.op_support.FrameSettings` (dt s, substeps M, ftl_damping,
+    integrity_model 0 none / 1 Hookean / 2 non-Hookean, the Config flags); hermite; finish_pose:
+    [] (none), or the frame's end fused in (``sim/finish.py``): [translation (P, 3) m, linear
+    (P, 3) m/s, angular velocity (P, 3) rad/s] of the head at the end of the frame.
     Returns new contiguous (x, v, speed): x, v (..., S, N, 3); with ``finish_pose``, v has the
     pinned particles at the head's rigid velocity and speed (..., S, N) m/s is |v − rigid
     velocity|; without, v is the dynamics' and speed an empty (0,) tensor.
     """
-    return _frame_finish_torch(state, external_force, model, poses, dt, substeps, ftl_damping, integrity_model,
-                               angular, angular_reaction, implicit_angular, geometric_stiffness, inextensibility,
-                               hermite, finish_pose)
-
-
-_SETTINGS = 10  # dt ... hermite: the op's scalar arguments before finish_pose
+    return _frame_finish_torch(state, external_force, model, poses, *settings_and_finish)
 
 
 def _split(settings_and_finish) -> tuple:
@@ -245,19 +247,15 @@ def _frame_fake(state, external_force, model, poses, *settings_and_finish):
         torch.empty_like(x, memory_format=torch.contiguous_format), speed
 
 
-@torch.library.custom_op("ams_torch::frame_assembly", mutates_args=())
-def frame_assembly_op(state: List[torch.Tensor], external_force: Optional[torch.Tensor], model: List[torch.Tensor],
-                      poses: List[torch.Tensor], dt: float, substeps: int, ftl_damping: float, integrity_model: int,
-                      angular: bool, angular_reaction: bool, implicit_angular: bool, geometric_stiffness: bool,
-                      inextensibility: bool, hermite: bool, substep: int) -> Tuple[torch.Tensor, torch.Tensor]:
+@torch.library.custom_op("ams_torch::frame_assembly", mutates_args=(), schema=frame_op_schema(
+    _FRAME_HEAD, "bool hermite, SymInt substep", "(Tensor, Tensor)"))
+def frame_assembly_op(state, external_force, model, poses, *settings_and_substep):
     """Registered op ``ams_torch::frame_assembly`` (debug, parity tests): the system of substep
     ``substep`` ∈ [0, M) assembled at the given (x, v) as the frame would assemble it there.
     Arguments as :func:`frame_dynamics_op`. Returns blocks (..., S, N, 4, 3, 3) kg (lower band,
     ``blocks[..., i, k] = A[i, i−k]``, full diagonal blocks) and rhs (..., S, N, 3) kg·m/s.
     """
-    return _assembly_torch(state, external_force, model, poses, dt, substeps, ftl_damping, integrity_model,
-                           angular, angular_reaction, implicit_angular, geometric_stiffness, inextensibility, hermite,
-                           substep)
+    return _assembly_torch(state, external_force, model, poses, *settings_and_substep)
 
 
 def _assembly_kernel(state, external_force, model, poses, *settings_and_substep):
@@ -299,16 +297,11 @@ def op_arguments(model: Model, coeffs: Coefficients, config: Config, x: torch.Te
             external_force = external_force.to(device=x.device, dtype=x.dtype)
         if external_force.shape != x.shape:
             external_force = external_force.expand(x.shape).contiguous()
-    shapes = {"mass": (s, n), "drag": (s, n), "edge": (s, n - 1), "bend": (s, n - 2), "torsion": (s, n - 3),
-              "integrity": (s, n), "angular": (s, n - 1)}
-    terms = [c if tuple(c.shape) == shapes[name] else c.expand(shapes[name])
-             for name, c in ((f, getattr(coeffs, f)) for f in shapes)]
-    model_list = [model.rest_positions, *terms, coeffs.transition, coeffs.breaking, coeffs.soft_ratio,
-                  *model.rest_lengths, model.segment_length, model.num_pinned, model.gravity]
-    settings = (float(config.dt), int(config.substeps), float(config.ftl_damping), _INTEGRITY[config.integrity_model],
-                bool(config.angular), bool(config.angular_reaction), bool(config.implicit_angular),
-                bool(config.geometric_stiffness), bool(config.inextensibility), hermite)
-    return ([x, v, ghost_rest, sag_offset], external_force, model_list, poses) + settings
+    model_list = []
+    for name, owner, k in MODEL_LAYOUT:
+        t = getattr(coeffs if owner == "coeffs" else model, name)
+        model_list.append(t if k is None or tuple(t.shape) == (s, n - k) else t.expand((s, n - k)))
+    return ([x, v, ghost_rest, sag_offset], external_force, model_list, poses) + FrameSettings.of(config) + (hermite,)
 
 
 def native_frame_dynamics(model: Model, coeffs: Coefficients, config: Config, x: torch.Tensor, v: torch.Tensor,
@@ -364,16 +357,64 @@ def native_frame_assembly(model: Model, coeffs: Coefficients, config: Config, x:
 # the five library classes are native (sphere, capsule, plane, hollow sphere, mesh); any other
 # (e.g. a subclass with its own distance) keeps the whole stage on the torch path.
 
-_COLLIDE_KINDS = {"cpu": "collide_cpu", "cuda": "collide_cuda"}
-_COLLIDER_TYPES = {SphereCollider: 0, CapsuleCollider: 1, PlaneCollider: 2, HollowSphereCollider: 3, MeshCollider: 4}
 MAX_COLLIDERS = 16
+
+
+def _mesh_view(g0, g1, g2, f0, f1, f2):
+    grid = SDFGrid.__new__(SDFGrid)
+    grid._volume_last, grid.origin, grid.upper = g0, g1, g2  # g0: (nz, ny, nx, 4)
+    grid._volume = g0.permute(3, 0, 1, 2)[None]
+    grid.values, grid.spacing = g0[..., 0].permute(2, 1, 0), nan
+    return grid.distance_and_normal
+
+
+class NativeCollider(NamedTuple):
+    """How a collider class crosses to the collision kernels: ``code``, the kernel's type
+    (``csrc/collide/collide.h``: ``kSphere`` 0 … ``kMesh`` 4); ``pack(collider, friction)``, its
+    three geometry tensors and three numbers (the op's collider_tensors / collider_floats);
+    ``view(g0, g1, g2, f0, f1, f2)``, its ``distance_and_normal`` rebuilt from them by the class's
+    own code (the torch definition behind the op)."""
+    code: int
+    pack: Callable
+    view: Callable
+
+
+#: The one collider registry of both paths: class -> kernel code, parameters, torch view. A collider
+#: of a class not here (e.g. a subclass with its own distance) keeps its stage on the torch path.
+NATIVE_COLLIDERS = {
+    SphereCollider: NativeCollider(
+        0, lambda c, f: ((c.center, f, f), (c.radius, 0.0, 0.0)),
+        lambda g0, g1, g2, f0, f1, f2: partial(SphereCollider.distance_and_normal,
+                                               SimpleNamespace(center=g0, radius=f0))),
+    CapsuleCollider: NativeCollider(
+        1, lambda c, f: ((c.a, c.b, f), (c.radius, 0.0, 0.0)),
+        lambda g0, g1, g2, f0, f1, f2: partial(CapsuleCollider.distance_and_normal,
+                                               SimpleNamespace(a=g0, b=g1, radius=f0))),
+    PlaneCollider: NativeCollider(
+        2, lambda c, f: ((c.point, c.normal, f), (0.0, 0.0, 0.0)),
+        lambda g0, g1, g2, f0, f1, f2: partial(PlaneCollider.distance_and_normal,
+                                               SimpleNamespace(point=g0, normal=g1))),
+    HollowSphereCollider: NativeCollider(
+        3, lambda c, f: ((c.center, c._frame, f), (c.radius, c.thickness, nan if c.cut_height is None else c.cut_height)),
+        lambda g0, g1, g2, f0, f1, f2: partial(HollowSphereCollider.distance_and_normal, SimpleNamespace(
+            center=g0, _frame=g1, radius=f0, thickness=f1, cut_height=None if isnan(f2) else f2))),
+    MeshCollider: NativeCollider(
+        4, lambda c, f: ((c.sdf._volume_last, c.sdf.origin, c.sdf.upper), (0.0, 0.0, 0.0)), _mesh_view),
+}
+_BY_CODE = {spec.code: spec for spec in NATIVE_COLLIDERS.values()}
+
+
+def native_colliders(cols) -> bool:
+    """Whether every collider of ``cols`` has native kernels (its class in :data:`NATIVE_COLLIDERS`,
+    at most :data:`MAX_COLLIDERS`)."""
+    cols = list(cols)
+    return len(cols) <= MAX_COLLIDERS and all(type(c) in NATIVE_COLLIDERS for c in cols)
 
 
 def native_collisions_available(device, dtype) -> bool:
     """Whether the native collision kernel runs for tensors of ``device`` and ``dtype`` (builds it
     on first call; not traceable: decide it when the simulator is built)."""
-    kind = _COLLIDE_KINDS.get(torch.device(device).type)
-    return kind is not None and dtype in NATIVE_DTYPES and _native.native_ops(kind) is not None
+    return native_available("collide", device, dtype)
 
 
 def native_collisions_supported(model: Model, x: torch.Tensor, v: torch.Tensor, head_pose: Pose,
@@ -382,18 +423,13 @@ def native_collisions_supported(model: Model, x: torch.Tensor, v: torch.Tensor, 
     collider one of the five library classes (at most 16), float32/float64 on CPU/CUDA, and no
     gradient to keep."""
     cols = list(model.colliders)
-    if len(cols) > MAX_COLLIDERS or any(type(c) not in _COLLIDER_TYPES for c in cols):
+    if not native_colliders(cols):
         return False
-    if x.dtype not in NATIVE_DTYPES or x.device.type not in _COLLIDE_KINDS:
-        return False
-    if torch.is_grad_enabled():
-        tensors = [x, v, head_pose.rotation] + [t for p in world_poses if p is not None for t in
-                                                (p.rotation, p.translation, p.linear_velocity,
-                                                 p.angular_velocity) if t is not None]
-        tensors += [t for c in cols for t in c.parameters()]
-        if any(t.requires_grad for t in tensors):
-            return False
-    return True
+    tensors = itertools.chain((x, v, head_pose.rotation),
+                              (t for p in world_poses if p is not None for t in
+                               (p.rotation, p.translation, p.linear_velocity, p.angular_velocity)),
+                              (t for c in cols for t in c.parameters()))
+    return native_inputs(x, tensors)
 
 
 def collision_arguments(model: Model, config: Config, x: torch.Tensor, v: torch.Tensor, head_pose: Pose,
@@ -402,24 +438,13 @@ def collision_arguments(model: Model, config: Config, x: torch.Tensor, v: torch.
     collider's data converted to x's dtype)."""
     tensors, poses, ints, floats = [], [], [], []
     for col, pose in zip(model.colliders, world_poses):
-        kind = _COLLIDER_TYPES[type(col)]
+        spec = NATIVE_COLLIDERS[type(col)]
         f = _as(col.friction, x)
-        if kind == 0:
-            geom, nums = (col.center, f, f), (col.radius, 0.0, 0.0)
-        elif kind == 1:
-            geom, nums = (col.a, col.b, f), (col.radius, 0.0, 0.0)
-        elif kind == 2:
-            geom, nums = (col.point, col.normal, f), (0.0, 0.0, 0.0)
-        elif kind == 3:
-            geom = (col.center, col._frame, f)
-            nums = (col.radius, col.thickness, nan if col.cut_height is None else col.cut_height)
-        else:
-            grid = col.sdf
-            geom, nums = (grid._volume_last, grid.origin, grid.upper), (0.0, 0.0, 0.0)
+        geom, nums = spec.pack(col, f)
         tensors += [f] + [_as(g, x) for g in geom]
         pose_list, vel = _pose_tensors(pose, x)
         poses += pose_list
-        ints += [kind, int(col.projection_iterations), int(vel)]
+        ints += [spec.code, int(col.projection_iterations), int(vel)]
         floats += [float(n) for n in nums]
     head, _ = _pose_tensors(Pose(head_pose.rotation, head_pose.translation, check=False), x)
     model_list = [model.rest_positions, model.edge_rest_length, model.num_pinned]
@@ -434,22 +459,7 @@ def _collider_views(tensors, ints, floats) -> list:
     for c in range(len(ints) // 3):
         kind, iters = ints[3 * c], ints[3 * c + 1]
         friction, g0, g1, g2 = tensors[4 * c:4 * c + 4]
-        f0, f1, f2 = floats[3 * c:3 * c + 3]
-        if kind == 0:
-            fn = partial(SphereCollider.distance_and_normal, SimpleNamespace(center=g0, radius=f0))
-        elif kind == 1:
-            fn = partial(CapsuleCollider.distance_and_normal, SimpleNamespace(a=g0, b=g1, radius=f0))
-        elif kind == 2:
-            fn = partial(PlaneCollider.distance_and_normal, SimpleNamespace(point=g0, normal=g1))
-        elif kind == 3:
-            fn = partial(HollowSphereCollider.distance_and_normal, SimpleNamespace(
-                center=g0, _frame=g1, radius=f0, thickness=f1, cut_height=None if isnan(f2) else f2))
-        else:
-            grid = SDFGrid.__new__(SDFGrid)
-            grid._volume_last, grid.origin, grid.upper = g0, g1, g2  # g0: (nz, ny, nx, 4)
-            grid._volume = g0.permute(3, 0, 1, 2)[None]
-            grid.values, grid.spacing = g0[..., 0].permute(2, 1, 0), nan
-            fn = grid.distance_and_normal
+        fn = _BY_CODE[kind].view(g0, g1, g2, *floats[3 * c:3 * c + 3])
         out.append(SimpleNamespace(distance_and_normal=fn, friction=friction, projection_iterations=iters))
     return out
 
@@ -498,9 +508,7 @@ def collisions_op(x: torch.Tensor, v: torch.Tensor, model: List[torch.Tensor], h
 
 
 def _collisions_kernel(x, v, model, head_rotation, tensors, poses, ints, floats, *settings):
-    ns = None
-    if x.dtype in NATIVE_DTYPES and not any(t.requires_grad for t in [x, v, head_rotation, *tensors, *poses]):
-        ns = _native.native_ops(_COLLIDE_KINDS[x.device.type])
+    ns = native_namespace("collide", x, [x, v, head_rotation, *tensors, *poses])
     if ns is None:
         return _collisions_torch(x, v, model, head_rotation, tensors, poses, ints, floats, *settings)
     return tuple(ns.collide(x, v, model, head_rotation, tensors, poses, ints, floats, *settings))

@@ -16,7 +16,6 @@ the same poses. Colliders of the five library classes only (others keep the torc
 from __future__ import annotations
 
 from functools import partial
-from typing import List, Optional, Tuple
 
 import torch
 
@@ -24,14 +23,17 @@ from ams_torch.geometry.pose import Pose
 from ams_torch.sim.contact import substep_contact
 from ams_torch.sim.dynamics import frame_dynamics, substep_poses
 from ams_torch.sim.model import Coefficients, Model
+from ams_torch.sim.op_support import frame_op_schema
+from ams_torch.native.dispatch import keeps_gradient
 from ams_torch.sim.native import (
-    _COLLIDER_TYPES,
-    MAX_COLLIDERS,
+    _FRAME_HEAD,
+    _SETTINGS,
     _all_tensors,
     _collider_views,
     _namespace,
     _rebuild,
     collision_arguments,
+    native_colliders,
     native_frame_supported,
     op_arguments,
 )
@@ -56,9 +58,9 @@ def native_frame_contact_supported(model: Model, coeffs: Coefficients, x, v, gho
     """:func:`~ams_torch.sim.native.native_frame_supported`, and every collider one of the five
     library classes (at most 16) with no parameter requiring grad (traceable checks only)."""
     cols = list(model.colliders)
-    if not cols or len(cols) > MAX_COLLIDERS or any(type(c) not in _COLLIDER_TYPES for c in cols):
+    if not cols or not native_colliders(cols):
         return False
-    if torch.is_grad_enabled() and any(t.requires_grad for c in cols for t in c.parameters()):
+    if keeps_gradient(t for c in cols for t in c.parameters()):
         return False
     return native_frame_supported(model, coeffs, x, v, ghost_rest, sag_offset, pose0, pose1, external_force)
 
@@ -76,12 +78,10 @@ def _contact_arguments(model: Model, config: Config, x: torch.Tensor, world: lis
     return tensors, poses, ints, floats
 
 
-def _contact_torch(state, external_force, model, poses, dt, substeps, ftl_damping, integrity_model, angular,
-                   angular_reaction, implicit_angular, geometric_stiffness, inextensibility, hermite,
-                   collider_tensors, collider_poses, collider_ints, collider_floats):
-    mview, coeffs, config, pose0, pose1 = _rebuild(state, external_force, model, poses, dt, substeps, ftl_damping,
-                                                   integrity_model, angular, angular_reaction, implicit_angular,
-                                                   geometric_stiffness, inextensibility, hermite)
+def _contact_torch(state, external_force, model, poses, *rest):
+    settings, (collider_tensors, collider_poses, collider_ints, collider_floats) = rest[:_SETTINGS], rest[_SETTINGS:]
+    mview, coeffs, config, pose0, pose1 = _rebuild(state, external_force, model, poses, *settings)
+    hermite = settings[-1]
     x, v, ghost_rest, sag_offset = state
     views = _collider_views(collider_tensors, collider_ints, collider_floats)
     batch = x.shape[:-3]
@@ -111,13 +111,10 @@ def _contact_torch(state, external_force, model, poses, dt, substeps, ftl_dampin
     return xo.contiguous(), vo.contiguous()
 
 
-@torch.library.custom_op("ams_torch::frame_contact", mutates_args=())
-def frame_contact_op(state: List[torch.Tensor], external_force: Optional[torch.Tensor], model: List[torch.Tensor],
-                     poses: List[torch.Tensor], dt: float, substeps: int, ftl_damping: float, integrity_model: int,
-                     angular: bool, angular_reaction: bool, implicit_angular: bool, geometric_stiffness: bool,
-                     inextensibility: bool, hermite: bool, collider_tensors: List[torch.Tensor],
-                     collider_poses: List[torch.Tensor], collider_ints: List[int],
-                     collider_floats: List[float]) -> Tuple[torch.Tensor, torch.Tensor]:
+@torch.library.custom_op("ams_torch::frame_contact", mutates_args=(), schema=frame_op_schema(
+    _FRAME_HEAD, "bool hermite, Tensor[] collider_tensors, Tensor[] collider_poses, SymInt[] collider_ints, "
+    "float[] collider_floats", "(Tensor, Tensor)"))
+def frame_contact_op(state, external_force, model, poses, *rest):
     """Registered op ``ams_torch::frame_contact``; default (any device): the torch definition.
 
     The arguments of :func:`~ams_torch.sim.native.frame_dynamics_op` (without ``finish_pose``),
@@ -127,13 +124,11 @@ def frame_contact_op(state: List[torch.Tensor], external_force: Optional[torch.T
     or the scenes), collider_ints[3c:3c+3] = type, push-out passes, has velocity,
     collider_floats[3c:3c+3] = the shape's numbers. Returns new contiguous (x, v), (..., S, N, 3).
     """
-    return _contact_torch(state, external_force, model, poses, dt, substeps, ftl_damping, integrity_model, angular,
-                          angular_reaction, implicit_angular, geometric_stiffness, inextensibility, hermite,
-                          collider_tensors, collider_poses, collider_ints, collider_floats)
+    return _contact_torch(state, external_force, model, poses, *rest)
 
 
 def _contact_kernel(state, external_force, model, poses, *rest):
-    tensors = _all_tensors(state, external_force, model, poses) + list(rest[10]) + list(rest[11])
+    tensors = _all_tensors(state, external_force, model, poses) + list(rest[_SETTINGS]) + list(rest[_SETTINGS + 1])
     ns = _namespace(state[0], tensors)
     if ns is None:
         return _contact_torch(state, external_force, model, poses, *rest)

@@ -6,7 +6,7 @@ the fused native frame with its M + 1 substep head poses given as a tensor (comp
 by :func:`~ams_torch.sim.dynamics.substep_poses`, so their gradients reach the frame's head poses
 and velocities), and ``register_autograd`` makes its backward the native adjoint kernel
 (``csrc/frame/frame_adjoint.h``; backends ``frame_adjoint_cpu`` / ``frame_adjoint_cuda`` of
-:mod:`ams_torch.solver.build`). The adjoint recomputes the frame (nothing is stored between the
+:mod:`ams_torch.native.build`). The adjoint recomputes the frame (nothing is stored between the
 passes) and differentiates it with respect to x, v, ghost_rest, the external force, the per-element
 coefficients (mass, drag, edge / bend / torsion stiffness, integrity, angular: the gradients of the
 Params fields behind them, per-strand fields too, follow by autograd), the non-Hookean curve
@@ -24,22 +24,19 @@ end, the plastic yield) keep the torch definition in a gradient frame
 """
 from __future__ import annotations
 
-from typing import List, Optional, Tuple
-
 import torch
 
 from ams_torch.geometry.pose import Pose
 from ams_torch.sim.dynamics import frame_dynamics, substep_poses
 from ams_torch.sim.model import Coefficients, Model
 from ams_torch.sim.native import MODEL_FIELDS, _rebuild, op_arguments
-from ams_torch.sim.op_support import NATIVE_DTYPES
+from ams_torch.sim.op_support import frame_op_schema
 from ams_torch.sim.state import Config, ExternalForce
-from ams_torch.solver import build as _native
+from ams_torch.native.dispatch import native_available, native_namespace
 
 __all__ = ["frame_dynamics_diff_op", "frame_dynamics_adjoint_op", "native_frame_dynamics_diff", "native_adjoint_supported",
            "substep_pose_tensor"]
 
-_KINDS = {"cpu": "frame_adjoint_cpu", "cuda": "frame_adjoint_cuda"}
 _GRAD_FIELDS = ("mass", "drag", "edge", "bend", "torsion", "integrity", "angular")  # adjoint outputs 4 … 10
 _LAW_FIELDS = ("transition", "breaking", "soft_ratio")  # the non-Hookean curve: adjoint output 13
 _FIXED_FIELDS = ("rest_positions", "transition", "breaking", "soft_ratio", "edge_rest_length", "bend_rest_length",
@@ -83,27 +80,24 @@ def _posed_torch(state, external_force, model, poses, dt, substeps, *flags):
 
 
 def _namespace(x: torch.Tensor):
-    kind = _KINDS.get(x.device.type)
-    if kind is None or x.dtype not in NATIVE_DTYPES:
-        return None
-    return _native.native_ops(kind)
+    """The adjoint kernels' namespace (inputs keep their gradient: this op has its own adjoint), or None."""
+    return native_namespace("frame_adjoint", x)
 
 
-@torch.library.custom_op("ams_torch::frame_dynamics_diff", mutates_args=())
-def frame_dynamics_diff_op(state: List[torch.Tensor], external_force: Optional[torch.Tensor],
-                           model: List[torch.Tensor], poses: torch.Tensor, dt: float, substeps: int,
-                           ftl_damping: float, integrity_model: int, angular: bool, angular_reaction: bool,
-                           implicit_angular: bool, geometric_stiffness: bool,
-                           inextensibility: bool) -> Tuple[torch.Tensor, torch.Tensor]:
+_POSED_HEAD = "Tensor[] state, Tensor? external_force, Tensor[] model, Tensor poses"
+
+
+@torch.library.custom_op("ams_torch::frame_dynamics_diff", mutates_args=(),
+                         schema=frame_op_schema(_POSED_HEAD, "", "(Tensor, Tensor)"))
+def frame_dynamics_diff_op(state, external_force, model, poses, *settings):
     """Registered op ``ams_torch::frame_dynamics_diff``; default (any device): the torch definition.
 
     state, external_force, model: as ``ams_torch::frame_dynamics`` (:mod:`ams_torch.sim.native`);
-    poses: (P, M + 1, 12) the substep head poses (:func:`substep_pose_tensor`); dt s, substeps M,
-    ftl_damping and the Config flags (integrity_model 0 none / 1 Hookean / 2 non-Hookean; the
-    one-particle angular form has no native adjoint and takes the torch definition). Returns new
+    poses: (P, M + 1, 12) the substep head poses (:func:`substep_pose_tensor`); the fields of
+    :class:`~ams_torch.sim.op_support.FrameSettings` (the one-particle angular form has no native
+    adjoint and takes the torch definition). Returns new
     contiguous (x, v), each (..., S, N, 3). Differentiable (register_autograd: the native adjoint)."""
-    return _posed_torch(state, external_force, model, poses, dt, substeps, ftl_damping, integrity_model, angular,
-                        angular_reaction, implicit_angular, geometric_stiffness, inextensibility)
+    return _posed_torch(state, external_force, model, poses, *settings)
 
 
 def _native_ok(integrity_model: int, angular: bool, angular_reaction: bool) -> bool:
@@ -155,20 +149,16 @@ def _torch_vjp(state, external_force, model, poses, settings, gx, gv) -> list:
     return grads[:11] + [grads[14], g_sag, law]
 
 
-@torch.library.custom_op("ams_torch::frame_dynamics_adjoint", mutates_args=())
-def frame_dynamics_adjoint_op(state: List[torch.Tensor], external_force: Optional[torch.Tensor],
-                              model: List[torch.Tensor], poses: torch.Tensor, dt: float, substeps: int,
-                              ftl_damping: float, integrity_model: int, angular: bool, angular_reaction: bool,
-                              implicit_angular: bool, geometric_stiffness: bool, inextensibility: bool,
-                              x_bar: torch.Tensor, v_bar: torch.Tensor) -> List[torch.Tensor]:
+@torch.library.custom_op("ams_torch::frame_dynamics_adjoint", mutates_args=(),
+                         schema=frame_op_schema(_POSED_HEAD, "Tensor x_bar, Tensor v_bar", "Tensor[]"))
+def frame_dynamics_adjoint_op(state, external_force, model, poses, *settings_and_seeds):
     """Registered op ``ams_torch::frame_dynamics_adjoint``: the vector-Jacobian product of
     :func:`frame_dynamics_diff_op` for the output adjoints x_bar, v_bar (..., S, N, 3). Default (any
     device): the torch definition's; CPU / CUDA: the native adjoint kernel. Returns [x̄, v̄, ḡhost_rest
     (each like x), external force (like x, or an empty tensor without one), mass (S, N), drag (S, N),
     edge (S, N−1), bend (S, N−2), torsion (S, N−3), integrity (S, N), angular (S, N−1), poses
     (P, M + 1, 12), sag_offset (like x), the non-Hookean transition, breaking point and soft ratio (3,)]."""
-    settings = (dt, substeps, ftl_damping, integrity_model, angular, angular_reaction, implicit_angular,
-                geometric_stiffness, inextensibility)
+    *settings, x_bar, v_bar = settings_and_seeds
     return _torch_vjp(state, external_force, model, poses, settings, x_bar, v_bar)
 
 
@@ -232,12 +222,12 @@ def native_adjoint_supported(model: Model, coeffs: Coefficients, config: Config,
         return False
     if external_force is not None and not isinstance(external_force, torch.Tensor):
         return False
-    if x.dtype not in NATIVE_DTYPES or x.device.type not in _KINDS or model.rest_positions.dtype != x.dtype:
+    if model.rest_positions.dtype != x.dtype:
         return False
     if any(getattr(model, f).requires_grad for f in ("rest_positions", "edge_rest_length", "bend_rest_length",
                                                      "torsion_rest_length", "segment_length", "gravity")):
         return False
-    return _native.native_ops(_KINDS[x.device.type]) is not None
+    return native_available("frame_adjoint", x.device, x.dtype)
 
 
 def native_frame_dynamics_diff(model: Model, coeffs: Coefficients, config: Config, x: torch.Tensor,

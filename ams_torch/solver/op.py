@@ -30,12 +30,12 @@ import math
 
 import torch
 
-from ams_torch.solver import build as _native
+from ams_torch.native import build as _native
+from ams_torch.native.dispatch import NATIVE_DTYPES
 from ams_torch.solver.reference import BANDWIDTH, solve_banded_plain
 
 __all__ = ["solve_banded", "solve_banded_op", "banded_solve_grad_blocks"]
 
-_NATIVE_DTYPES = (torch.float32, torch.float64)
 
 
 def _validate(blocks: torch.Tensor, rhs: torch.Tensor) -> None:
@@ -70,7 +70,7 @@ def _native_or_plain(get_op, blocks: torch.Tensor, rhs: torch.Tensor) -> torch.T
     _validate(blocks, rhs)
     if rhs.numel() == 0:
         return rhs.new_empty(rhs.shape)
-    if rhs.dtype in _NATIVE_DTYPES:
+    if rhs.dtype in NATIVE_DTYPES:
         op = get_op()
         if op is not None:
             return op(blocks, rhs)

@@ -5,8 +5,8 @@ block-sparse grid of :mod:`.sparse` (a pool of K blocks of 4³ cells per scene; 
 
 * default implementation (any device): the torch definition (``sparse.py``: the dense grid of
   ``transfer.py`` and ``pressure.py`` on the occupied blocks);
-* CPU and CUDA: the native kernels of ``ams_torch/solver/csrc/grid`` (backends ``grid_cpu`` and
-  ``grid_cuda`` of :mod:`ams_torch.solver.build`), built lazily on first use, for float32 and
+* CPU and CUDA: the native kernels of ``ams_torch/native/csrc/grid`` (backends ``grid_cpu`` and
+  ``grid_cuda`` of :mod:`ams_torch.native.build`), built lazily on first use, for float32 and
   float64; otherwise (not built, ``AMS_TORCH_NATIVE=0``, another dtype) the torch definition,
   unless ``require_native`` asks for an error instead;
 * ``register_fake``: shapes for ``torch.compile`` / meta tensors. No autograd formula: the
@@ -37,26 +37,24 @@ from __future__ import annotations
 
 import torch
 
-from ams_torch.solver import build as _native
+from ams_torch.native import build as _native
+from ams_torch.native.dispatch import NATIVE_DTYPES, native_available as _available, native_kind, native_namespace
 from ams_torch.stages.hair_hair.sparse import BLOCK_CELLS, blocks_per_axis, g2p_sparse, p2g_sparse, pressure_sparse
 
 __all__ = ["NATIVE_DTYPES", "native_available", "p2g_op", "pressure_op", "g2p_op", "p2g", "pressure", "g2p"]
 
-NATIVE_DTYPES = (torch.float32, torch.float64)
-_KINDS = {"cpu": "grid_cpu", "cuda": "grid_cuda"}
 
 
 def native_available(device, dtype) -> bool:
     """Whether the native grid kernels run for tensors of ``device`` and ``dtype`` (builds on
     first call; False when they cannot be built, when disabled, or for other dtypes)."""
-    kind = _KINDS.get(torch.device(device).type)
-    return kind is not None and dtype in NATIVE_DTYPES and _native.native_ops(kind) is not None
+    return _available("grid", device, dtype)
 
 
 def _namespace(t: torch.Tensor, require_native: bool, what: str):
     """The native namespace for ``t``'s device, or None (torch definition), or an error."""
-    kind = _KINDS[t.device.type]
-    ns = _native.native_ops(kind) if t.dtype in NATIVE_DTYPES else None
+    kind = native_kind("grid", t.device)
+    ns = native_namespace("grid", t)  # the stage sends inputs that keep a gradient to the torch definition
     if ns is None and require_native:
         if t.dtype not in NATIVE_DTYPES:
             why = f"dtype {t.dtype} (native kernels take float32 and float64)"
@@ -165,7 +163,7 @@ def _g2p_fake(x, v, field, table, frame, origin, free, dt, cell_size, resolution
 def _direct(t: torch.Tensor) -> bool:
     """Call the kernel functions directly (skipping ~12 µs of custom-op dispatch per call): in
     eager mode on CPU/CUDA. Under torch.compile the registered ops (their fakes, their schemas)."""
-    return t.device.type in _KINDS and not torch.compiler.is_compiling()
+    return native_kind("grid", t.device) is not None and not torch.compiler.is_compiling()
 
 
 def p2g(x, v, m, frame, origin, cell_size: float, resolution: int, capacity: int, require_native: bool):

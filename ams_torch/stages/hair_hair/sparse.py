@@ -3,7 +3,7 @@
 The dense grid of :mod:`.transfer` and :mod:`.pressure` is the definition of the stage (SPEC §6);
 this module computes the same values on the cells the hair occupies only, with static shapes and
 no host synchronisation. It is the stage's torch path and the definition of the native kernels
-(``ams_torch/solver/csrc/grid``), which use the same layout.
+(``ams_torch/native/csrc/grid``), which use the same layout.
 
 **Blocks.** The grid is cut into blocks of ``BLOCK³ = 4³`` cells: block (I, J, K) holds the cells,
 and for each component c the c-faces, with indices (4I + a, 4J + b, 4K + e), a, b, e ∈ [0, 4),

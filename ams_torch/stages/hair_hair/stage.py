@@ -9,6 +9,7 @@ import torch
 from ams_torch.geometry.pose import Pose
 from ams_torch.stages.hair_hair.config import HairHairGrid
 from ams_torch.stages.hair_hair.detailed import detailed_collisions
+from ams_torch.native.dispatch import keeps_gradient
 from ams_torch.stages.hair_hair.native import NATIVE_DTYPES, g2p, p2g, pressure
 from ams_torch.stages.hair_hair.sparse import g2p_sparse, p2g_sparse, pressure_sparse
 from ams_torch.stages.hair_hair.transfer import scene_frame, to_head
@@ -75,7 +76,7 @@ def _use_native(backend: str, tensors, dtype) -> bool:
         raise ValueError(f"backend must be one of {BACKENDS}; got {backend!r}")
     if backend == "torch":
         return False
-    grad = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+    grad = keeps_gradient(tensors)
     if backend == "native":
         if grad:
             raise ValueError("hair_hair backend='native' has no gradient: an input requires grad (use 'auto' "

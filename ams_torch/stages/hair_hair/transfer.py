@@ -1,6 +1,6 @@
 """Frames and particle ↔ grid transfers of the hair–hair stage: the torch definition.
 
-Layout shared with the native kernels (``ams_torch/solver/csrc/grid``):
+Layout shared with the native kernels (``ams_torch/native/csrc/grid``):
 
 * ``frame``: (B, 6, 3) per scene, rows 0–2 the head rotation R (world ← head), row 3 its
   translation T (m), row 4 its linear velocity V (m/s), row 5 its angular velocity W (rad/s,

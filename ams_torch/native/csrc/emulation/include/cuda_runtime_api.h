@@ -1,0 +1,3 @@
+// CUDA emulation (ams_torch/native/csrc/emulation): stands in for the toolkit's header.
+#pragma once
+#include "cuda_emulation_runtime.h"

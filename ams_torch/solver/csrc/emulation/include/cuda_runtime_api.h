@@ -1,3 +1,0 @@
-// CUDA emulation (ams_torch/solver/csrc/emulation): stands in for the toolkit's header.
-#pragma once
-#include "cuda_emulation_runtime.h"
