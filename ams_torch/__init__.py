@@ -27,7 +27,7 @@ from ams_torch.grooms.io import read_groom, write_groom
 from ams_torch.sim.params import Params
 from ams_torch.sim.simulator import Simulator
 from ams_torch.sim.state import State
-from ams_torch.sim.step import SimulationDiverged
+from ams_torch.sim.stepping import SimulationDiverged
 from ams_torch.solver.build import native_status
 from ams_torch.stages.collide import MeshCollider
 from ams_torch.stages.hair_hair import HairHair

@@ -382,7 +382,7 @@ def test_grid_overflow_is_an_error_from_check_naming_the_frame(backend):
     capacity; a grid that holds the hair keeps the flag at −1."""
     from ams_torch.sim.params import Params
     from ams_torch.sim.simulator import Simulator
-    from ams_torch.sim.step import GridOverflow, SimulationDiverged
+    from ams_torch.sim.stepping import GridOverflow, SimulationDiverged
 
     rest = head_groom(40, 8, length=0.12)
     params = Params(check_every=0)

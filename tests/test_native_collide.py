@@ -1,6 +1,6 @@
 """Fused native collision stage (SPEC §8, §15): torch definition vs native CPU (vs CUDA).
 
-The torch definition is ``ams_torch.sim.step.collisions`` (the contact response of every collider
+The torch definition is ``ams_torch.sim.stepping.collisions`` (the contact response of every collider
 in order, then follow-the-leader and push-out rounds); the native kernel is
 ``ams_torch/solver/csrc/collide``, built once per session. Tolerance: float64 1e-10 relative
 (measured: ~1e-16). The kernel computes σ, the normals and the response with the torch code's
@@ -30,7 +30,7 @@ from ams_torch.geometry.sdf import SDFGrid
 from ams_torch.sim import native
 from ams_torch.sim.dynamics import frame_dynamics
 from ams_torch.sim.model import coefficients
-from ams_torch.sim.step import collisions
+from ams_torch.sim.stepping import collisions
 from ams_torch.solver import build as _native
 from ams_torch.stages.collide import (
     CapsuleCollider,

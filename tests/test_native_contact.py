@@ -25,7 +25,7 @@ from ams_torch.sim.model import coefficients
 from ams_torch.sim.native import op_arguments
 from ams_torch.sim.native_contact import (_contact_arguments, _contact_torch, frame_contact_op, native_frame_contact,
                                           native_frame_contact_supported, substep_world_poses)
-from ams_torch.sim.step import resolve_pose
+from ams_torch.sim.stepping import resolve_pose
 from ams_torch.stages.collide import collider_distances, resolve_world_poses
 
 F64 = torch.float64

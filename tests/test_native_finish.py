@@ -12,7 +12,7 @@ from ams_torch.geometry.pose import Pose
 from ams_torch.sim import finish
 from ams_torch.sim.op_support import pose_tensors
 from ams_torch.sim.state import Control
-from ams_torch.sim.step import SimulationDiverged, check_state, step
+from ams_torch.sim.stepping import SimulationDiverged, check_state, step
 from ams_torch.stages.collide import SphereCollider
 from test_native_frame import DEVICES, F32, F64, _native_ns, frame_args, make_scene, native_cpu, rel  # noqa: F401
 

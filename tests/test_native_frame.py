@@ -36,7 +36,7 @@ from ams_torch.sim import native
 from ams_torch.sim.op_support import pose_tensors
 from ams_torch.sim.dynamics import frame_dynamics, substep_system
 from ams_torch.sim.model import coefficients
-from ams_torch.sim.step import resolve_pose
+from ams_torch.sim.stepping import resolve_pose
 from ams_torch.solver import build as _native
 
 REPO = Path(__file__).resolve().parents[1]
@@ -69,11 +69,7 @@ def _native_ns(device: str):
 def set_pinned(model, counts) -> None:
     """Pin the first counts[s] particles of strand s (an int for all strands), on the model itself
     (independent of how Params chooses the pinned root)."""
-    s, n = model.num_strands, model.num_particles
-    counts = torch.as_tensor(counts, dtype=torch.int64, device=model.device).expand(s).clone()
-    model.num_pinned = counts
-    model.pinned = torch.arange(n, device=model.device)[None, :] < counts[:, None]
-    model.has_pinned = bool(counts.max() > 0)
+    model.set_pinned(counts)
 
 
 def make_scene(dtype=F64, device="cpu", strands=13, particles=12, scenes=None, groom="sphere", seed=0,
@@ -589,7 +585,7 @@ _FALLBACK_SCRIPT = textwrap.dedent(
     from test_native_collide import make_case
     from ams_torch.sim import native
     from ams_torch.sim.dynamics import frame_dynamics
-    from ams_torch.sim.step import collisions
+    from ams_torch.sim.stepping import collisions
     from ams_torch.solver import build
     from ams_torch.stages.collide import resolve_world_poses
     with warnings.catch_warnings(record=True) as caught:
