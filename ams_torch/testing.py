@@ -1,4 +1,4 @@
-"""Input factories shared by the tests, the benchmarks and the demo.
+"""Input factories shared by the tests and the benchmarks (library code never imports this module).
 
 Simple, deterministic grooms and motions (metres, seconds, head frame with +y up):
 ``sphere_groom`` (strands on the upper half of a sphere "head"), ``curly_strand``,
@@ -6,11 +6,10 @@ Simple, deterministic grooms and motions (metres, seconds, head frame with +y up
 """
 from __future__ import annotations
 
-import math
-
 import torch
 
-from ams_torch.geometry.pose import Pose, axis_angle_to_matrix
+from ams_torch.apps.identify import at_material_points
+from ams_torch.apps.motion import Shake
 from ams_torch.grooms.simple import curly_strand, sphere_groom, wisp
 
 __all__ = ["sphere_groom", "curly_strand", "wisp", "shake_poses", "shape_deviation", "at_material_points",
@@ -20,23 +19,9 @@ __all__ = ["sphere_groom", "curly_strand", "wisp", "shake_poses", "shape_deviati
 def shake_poses(frames: int, dt: float, amplitude: float = 0.6, frequency: float = 1.5,
                 axis=(0.0, 1.0, 0.0), translation_amplitude=(0.0, 0.0, 0.0), device=None,
                 dtype=torch.float32) -> list:
-    """A head shaking about ``axis``: angle(t) = amplitude·sin(2πft) radians, with exact
-    angular velocity, plus an optional sinusoidal translation (metres, same frequency).
-    Returns a list of :class:`Pose` for t = dt, 2dt, …, frames·dt (ends of frames)."""
-    axis = torch.as_tensor(axis, dtype=torch.float64)
-    axis = axis / axis.norm()
-    ta = torch.as_tensor(translation_amplitude, dtype=torch.float64)
-    poses = []
-    w = 2 * math.pi * frequency
-    for k in range(1, frames + 1):
-        t = k * dt
-        ang = amplitude * math.sin(w * t)
-        omega = amplitude * w * math.cos(w * t)
-        rot = axis_angle_to_matrix(axis * ang)
-        trans = ta * math.sin(w * t)
-        lin = ta * w * math.cos(w * t)
-        poses.append(Pose(rot, trans, lin, axis * omega).to(device=device, dtype=dtype))
-    return poses
+    """The end-of-frame poses t = dt, …, frames·dt of :class:`ams_torch.apps.motion.Shake`
+    (amplitude rad, frequency Hz, axis, translation_amplitude m): a list of :class:`Pose`."""
+    return Shake(amplitude, frequency, axis, translation_amplitude).poses(frames, dt, device=device, dtype=dtype)
 
 
 def shape_deviation(x: torch.Tensor, rest: torch.Tensor, align: bool = False) -> torch.Tensor:
@@ -56,28 +41,6 @@ def shape_deviation(x: torch.Tensor, rest: torch.Tensor, align: bool = False) ->
     diag = torch.cat((diag[..., :2], d[..., None]), -1)
     r = u @ torch.diag_embed(diag) @ vt
     return (xc @ r - rc).norm(dim=-1).mean(-1)
-
-
-def at_material_points(rest: torch.Tensor, x: torch.Tensor, points: int = 33) -> torch.Tensor:
-    """Positions of x at fixed material points: the rest arc-length fractions k / (points − 1).
-
-    rest: (S, N, 3) m, the rest shape that defines arc length; x: (..., S, N, 3) m, a simulated
-    state of that groom. Each material point is interpolated linearly along the simulated
-    polyline between the two particles whose rest arc lengths bracket it, so grooms of
-    different N can be compared point for point (errors in N are measured this way, not by
-    particle index). Returns (..., S, points, 3) m.
-    """
-    seg = (rest[:, 1:] - rest[:, :-1]).norm(dim=-1)
-    arc = torch.nn.functional.pad(seg.cumsum(-1), (1, 0))
-    arc = arc / arc[:, -1:]
-    u = torch.linspace(0, 1, points, dtype=rest.dtype, device=rest.device).expand(rest.shape[0], points).contiguous()
-    idx = torch.searchsorted(arc.contiguous(), u).clamp(1, rest.shape[1] - 1)  # (S, points)
-    a0, a1 = arc.gather(1, idx - 1), arc.gather(1, idx)
-    t = ((u - a0) / (a1 - a0)).clamp(0, 1)[..., None]
-    lead = x.shape[:-3]
-    gather = lambda i: torch.gather(x, -2, i[..., None].expand(lead + i.shape + (3,)))  # noqa: E731
-    x0, x1 = gather(idx - 1), gather(idx)
-    return x0 + t.to(x.dtype) * (x1 - x0)
 
 
 def total_energy(sim, state) -> torch.Tensor:
