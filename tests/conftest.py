@@ -29,6 +29,38 @@ def built_native(kind: str):
     return ns
 
 
+@pytest.fixture(scope="session")
+def head():
+    """The default head mesh (``ams_torch.default_head()``), once per session."""
+    from ams_torch.grooms.head import default_head
+
+    return default_head()
+
+
+@pytest.fixture(scope="session")
+def head_sdf(head, tmp_path_factory):
+    """The default head's 64³ signed-distance grid, built once per session."""
+    from ams_torch.geometry.sdf import SDFGrid
+
+    return SDFGrid.from_mesh(head, resolution=64, cache_dir=tmp_path_factory.mktemp("sdf"))
+
+
+# The native builds, each loaded once per session (skips as ``built_native``).
+@pytest.fixture(scope="session")
+def frame_ops():
+    return built_native("frame_cpu")
+
+
+@pytest.fixture(scope="session")
+def collide_ops():
+    return built_native("collide_cpu")
+
+
+@pytest.fixture(scope="session")
+def grid_ops():
+    return built_native("grid_cpu")
+
+
 def load_script(name: str):
     """Import ``scripts/<name>.py`` as a module (the scripts are not a package)."""
     import importlib.util

@@ -18,16 +18,14 @@ from ams_torch.stages.collide import (
 )
 from ams_torch.grooms.head import default_head
 from ams_torch.geometry.pose import Pose, axis_angle_to_matrix
-from ams_torch.geometry.sdf import SDFGrid
 
 DT = 0.02
 
 
 @pytest.fixture(scope="session")
-def head_collider(tmp_path_factory):
+def head_collider(head_sdf):
     pytest.importorskip("point_cloud_utils")
-    grid = SDFGrid.from_mesh(default_head(), resolution=64, cache_dir=tmp_path_factory.mktemp("sdf"))
-    return MeshCollider(grid, friction=0.5)
+    return MeshCollider(head_sdf, friction=0.5)
 
 
 def analytic_colliders(mu=0.3):

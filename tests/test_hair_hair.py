@@ -5,11 +5,12 @@ import pytest
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
+from conftest import DEVICES
+
 from ams_torch.stages.hair_hair import HairHair, build_hair_hair, grid_density, hair_hair_stage, make_stage
 from ams_torch.stages.hair_hair.detailed import detailed_collisions
 from ams_torch.geometry.pose import Pose
 
-DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 DT = 1.0 / 60.0
 
 

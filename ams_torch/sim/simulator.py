@@ -11,7 +11,7 @@ from ams_torch.sim.backends import resolve_backend
 from ams_torch.sim.builder import ModelBuilder, make_config
 from ams_torch.sim.model import coefficients, sag_free_offset
 from ams_torch.sim.params import Params
-from ams_torch.sim.state import Config, Control, ExternalForce, State
+from ams_torch.sim.state import Control, ExternalForce, State
 from ams_torch.stages.collide import Collider
 from ams_torch.stages.hair_hair import HairHair
 
