@@ -12,5 +12,5 @@ from ams_torch.sim.state import Config, Control, State
 from ams_torch.sim.stepping import SimulationDiverged, check_state, step
 from ams_torch.sim.rollout import Rollout, rollout
 
-__all__ = ["Params", "Simulator", "Model", "ModelBuilder", "make_config", "State", "Control", "Config", "step", "check_state", "SimulationDiverged",
-           "Coefficients", "coefficients", "rollout", "Rollout"]
+__all__ = ["Params", "Simulator", "Model", "ModelBuilder", "make_config", "State", "Control", "Config", "step",
+           "check_state", "SimulationDiverged", "Coefficients", "coefficients", "rollout", "Rollout"]

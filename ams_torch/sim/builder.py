@@ -8,11 +8,17 @@ device and dtype, its Params frozen), and :func:`make_config` the frozen
 :class:`~ams_torch.sim.state.Config` the step branches on. :class:`~ams_torch.Simulator` is this
 plus a backend choice and the initial pose.
 
-    builder = ModelBuilder(rest, Params(), dtype=torch.float64)
-    builder.add_collider(SphereCollider((0.0, 0.0, 0.0), 0.08))
-    builder.set_hair_hair(HairHair(resolution=32))
-    model = builder.finalize()
-    config = make_config(model, backend="torch")
+    >>> import torch
+    >>> from ams_torch import HairHair, Params
+    >>> from ams_torch.grooms.simple import sphere_groom
+    >>> from ams_torch.stages.collide import SphereCollider
+    >>> builder = ModelBuilder(sphere_groom(8, 12), Params(), dtype=torch.float64)
+    >>> builder.add_collider(SphereCollider((0.0, 0.0, 0.0), 0.08)).set_hair_hair(HairHair(resolution=8))
+    <ams_torch.sim.builder.ModelBuilder object at ...>
+    >>> model = builder.finalize()
+    >>> config = make_config(model, backend="torch")
+    >>> (model.num_strands, model.num_particles, len(model.colliders), config.colliders, config.hair_hair)
+    (8, 12, 1, 1, True)
 """
 from __future__ import annotations
 

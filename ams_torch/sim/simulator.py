@@ -85,8 +85,9 @@ class Simulator(torch.nn.Module):
         colliders: colliders for the hair–solid stage (SPEC §8), e.g. ``MeshCollider``,
             ``SphereCollider``; an empty list or None builds no SDF and runs no collision code.
             The simulator keeps its own copies, converted to its device and dtype.
-        learnable: names of Params material fields (e.g. ``("integrity_stiffness", "drag")``)
-            to make ``nn.Parameter`` s of the module, for ``torch.optim.Adam(sim.parameters())``.
+        learnable: names of Params material fields to make ``nn.Parameter`` s of the module, for
+            ``torch.optim.Adam(sim.parameters())``: e.g. ``("integrity_rate", "drag")`` with the
+            default per-length material, ``("integrity_stiffness", "drag")`` with a per-particle one.
         backend: "torch" (the differentiable definition), "native" (the fused kernels, see
             :mod:`ams_torch.sim.native`; an error naming the kernels that cannot be built) or "auto"
             (the default: native when they can be built, torch otherwise, one warning per backend
@@ -102,12 +103,20 @@ class Simulator(torch.nn.Module):
     ``state_dict()`` work), the frozen settings ``sim.config``; ``sim.step`` builds a
     :class:`~ams_torch.sim.state.Control` and calls the pure step.
 
-    Usage::
+    Example (run by ``tests/test_doctests.py``):
 
-        sim = Simulator(rest, Params(), device="cuda")
-        state = sim.initial_state()
-        for pose in poses:
-            state = sim.step(state, pose)      # state.x, state.v: (S, N, 3)
+        >>> import ams_torch as at
+        >>> from ams_torch.apps.motion import Shake
+        >>> from ams_torch.grooms.simple import sphere_groom
+        >>> rest = sphere_groom(8, 12)                            # (S, N, 3) m
+        >>> sim = at.Simulator(rest, at.Params(), learnable=("integrity_rate", "drag"), backend="torch")
+        >>> state = sim.initial_state()
+        >>> for pose in Shake().poses(3, sim.params.dt):
+        ...     state = sim.step(state, pose)
+        >>> state.x.shape                                        # state.x, state.v: (S, N, 3)
+        torch.Size([8, 12, 3])
+        >>> sorted(name for name, _ in sim.named_parameters())
+        ['model.drag', 'model.integrity_rate']
     """
 
     def __init__(self, rest_positions, params: Optional[Params] = None, *, device=None,
