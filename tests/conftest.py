@@ -61,6 +61,21 @@ def grid_ops():
     return built_native("grid_cpu")
 
 
+def rel(a: torch.Tensor, b: torch.Tensor) -> float:
+    """‖a − b‖ / ‖b‖ in float64 on the CPU (‖a − b‖ when b is 0): the parity tests' error."""
+    a, b = a.double().cpu(), b.double().cpu()
+    den = b.norm().item()
+    return (a - b).norm().item() / den if den > 0 else (a - b).norm().item()
+
+
+def sha(path) -> str:
+    """The SHA-256 of a file's bytes (hex)."""
+    import hashlib
+
+    with open(path, "rb") as f:
+        return hashlib.sha256(f.read()).hexdigest()
+
+
 def load_script(name: str):
     """Import ``scripts/<name>.py`` as a module (the scripts are not a package)."""
     import importlib.util

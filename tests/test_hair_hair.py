@@ -14,14 +14,6 @@ from ams_torch.geometry.pose import Pose
 DT = 1.0 / 60.0
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_cpu_thread():
-    """These tests use small tensors; on a CPU shared with other jobs, two OpenMP threads made
-    them ~15× slower (each parallel op waits for a busy core). Restored afterwards."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 MASS = 1e-6  # kg per particle
 
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import built_native
+from conftest import built_native, rel
 
 import ams_torch
 from ams_torch import testing
@@ -108,11 +108,6 @@ def contact_share(sim, x, world) -> float:
     for col, pose in zip(sim.colliders, world):
         inside |= col.distance(pose.to_local(x)) < 0
     return inside.double().mean().item()
-
-
-def rel(a, b) -> float:
-    a, b = a.double(), b.double()
-    return ((a - b).norm() / b.norm()).item()
 
 
 # ---------------------------------------------------------------------------------------

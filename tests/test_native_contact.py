@@ -13,8 +13,8 @@ from functools import partial
 
 import pytest
 import torch
-from conftest import built_native
-from test_native_collide import KINDS, make_colliders, rel
+from conftest import built_native, rel
+from test_native_collide import KINDS, make_colliders
 
 import ams_torch
 from ams_torch import testing

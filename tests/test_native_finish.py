@@ -14,8 +14,8 @@ from ams_torch.sim.op_support import pose_tensors
 from ams_torch.sim.state import Control
 from ams_torch.sim.stepping import SimulationDiverged, check_state, step
 from ams_torch.stages.collide import SphereCollider
-from conftest import DEVICES
-from test_native_frame import F32, F64, _native_ns, frame_args, make_scene, rel
+from conftest import DEVICES, rel
+from test_native_frame import F32, F64, _native_ns, frame_args, make_scene
 
 EPS64 = torch.finfo(F64).eps
 

@@ -27,7 +27,7 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-from conftest import DEVICES, built_native
+from conftest import DEVICES, built_native, rel
 
 import ams_torch
 from ams_torch import testing
@@ -130,13 +130,6 @@ def native_frame(ns, model, coeffs, config, x, v, ghost_rest, sag_offset, pose0,
     args = native.op_arguments(model, coeffs, config, x, v, ghost_rest, sag_offset, pose0, pose1, hermite,
                                external_force)
     return ns.frame(*args, -1)
-
-
-def rel(a: torch.Tensor, b: torch.Tensor) -> float:
-    """‖a − b‖ / ‖b‖ (0 when both are 0)."""
-    a, b = a.double().cpu(), b.double().cpu()
-    den = b.norm().item()
-    return (a - b).norm().item() / den if den > 0 else (a - b).norm().item()
 
 
 # ---------------------------------------------------------------------------------------

@@ -55,14 +55,6 @@ def f32_rel(r: int) -> float:
     return 8 * r * torch.finfo(torch.float32).eps
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_cpu_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def _namespace(device: str):
     if device == "cpu":
         return _native.native_ops("grid_cpu")
