@@ -237,13 +237,12 @@ class Model(torch.nn.Module):
         terms = _compute_terms(self, set(self._fixed_terms))
         for t in self._fixed_terms:
             self.register_buffer(f"coefficient_{t}", terms[t].contiguous(), persistent=False)
-        self._fields_seen = self._versions(self._watched_fields)
-        self._geometry_seen = self._versions(self._geometry)
+        self._seen = self._snapshot()
 
-    def _versions(self, names: tuple) -> tuple:
-        """(identity, in-place version) of each named buffer: changes when it is edited or replaced."""
+    def _snapshot(self) -> list:
+        """(name, tensor, in-place version) of every watched buffer, the rest geometry first."""
         b = self._buffers
-        return tuple((id(b[n]), b[n]._version) for n in names)
+        return [(n, b[n], b[n]._version) for n in self._geometry + self._watched_fields]
 
     def update(self) -> "Model":
         """Take in-place edits of the fixed fields into account (cheap: compares each field's
@@ -253,17 +252,21 @@ class Model(torch.nn.Module):
         coefficient terms derived from it, so the next step uses it. The rest geometry
         (``rest_positions``, rest lengths, pinned particles, …) is fixed once built: an edit raises
         ``ValueError`` (build a new model from the new rest positions: :class:`ModelBuilder`).
-        Under ``torch.compile`` nothing is checked inside the compiled region: call ``update()``
-        before the compiled step (:meth:`~ams_torch.Simulator.step` does, outside it).
+        Under ``torch.compile`` nothing is checked inside the compiled region: after editing a
+        field, call ``update()`` before the next compiled step.
         """
-        if self._versions(self._geometry) != self._geometry_seen:
-            changed = [n for n, seen in zip(self._geometry, self._geometry_seen)
-                       if (id(self._buffers[n]), self._buffers[n]._version) != seen]
+        b = self._buffers
+        for n, t, v in self._seen:
+            if b[n] is not t or t._version != v:
+                break
+        else:
+            return self  # nothing edited (the common case: one pass over the version counters)
+        changed = [n for n, t, v in self._seen if n in self._geometry and (b[n] is not t or t._version != v)]
+        if changed:
             raise ValueError(f"Model.{', Model.'.join(changed)} changed after the model was built: the rest geometry "
                              f"and what is derived from it (rest lengths, segment lengths, pinned particles) are "
                              f"fixed; build a new model from the new rest positions (ModelBuilder / Simulator)")
-        if self._versions(self._watched_fields) != self._fields_seen:
-            self._build_fixed_terms()
+        self._build_fixed_terms()
         return self
 
     def set_pinned(self, counts) -> "Model":
@@ -278,11 +281,11 @@ class Model(torch.nn.Module):
         self.num_pinned = counts
         self.pinned = torch.arange(n, device=self.device)[None, :] < counts[:, None]
         self.has_pinned = bool(int(counts.max()) > 0)
-        self._geometry_seen = self._versions(self._geometry)
+        self._seen = self._snapshot()
         return self
 
     def _apply(self, fn, *args, **kwargs):
-        if hasattr(self, "_geometry_seen"):
+        if hasattr(self, "_seen"):
             self.update()  # an edited rest geometry raises here too, not silently accepted by .to()
         out = super()._apply(fn, *args, **kwargs)
         self._build_fixed_terms()  # recomputed in the new dtype from the converted fields

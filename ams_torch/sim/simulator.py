@@ -332,8 +332,6 @@ class Simulator(torch.nn.Module):
                 :class:`~ams_torch.sim.stepping.GridOverflow`) the hair occupied more blocks than the
                 hair–hair grid holds.
         """
-        if not torch.compiler.is_compiling():
-            self.model.update()  # in-place edits of the model's fields take effect (or raise), outside a compiled region
         control = self.control(state, pose, collider_poses=collider_poses, external_force=external_force)
         new = step_mod.step(self.model, state, control, self.config, timer, self.stages)
         force = control.external_force

@@ -22,10 +22,8 @@ Profiler labels (``torch.profiler.record_function``): ``ams_torch.dynamics``,
 """
 from __future__ import annotations
 
-import dataclasses
 import functools
 from contextlib import nullcontext
-from dataclasses import dataclass
 from typing import Callable, NamedTuple, Optional, Sequence
 
 import torch
@@ -169,8 +167,7 @@ def _label(name: str):
     return nullcontext()
 
 
-@dataclass(frozen=True)
-class Frame:
+class Frame(NamedTuple):
     """What the stages of one frame hand along (immutable: a stage returns ``frame.replace(...)``).
 
     Fixed for the frame: model, config, state (at its start), control, pose1 (the head at its end,
@@ -200,7 +197,7 @@ class Frame:
     diverged_input: Optional[torch.Tensor] = None
 
     def replace(self, **changes) -> "Frame":
-        return dataclasses.replace(self, **changes)
+        return self._replace(**changes)
 
 
 def dynamics_stage(f: Frame) -> Frame:
