@@ -1,3 +1,6 @@
+import os
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -74,6 +77,37 @@ def sha(path) -> str:
 
     with open(path, "rb") as f:
         return hashlib.sha256(f.read()).hexdigest()
+
+
+#: the repository's root folder
+REPO = Path(__file__).resolve().parents[1]
+
+
+def run_cli(args, fsize=None, timeout=180, script=None):
+    """``python -m ams_torch ARGS`` (or ``python -c SCRIPT``) in a child process, with a file size
+    limit of ``fsize`` bytes (``ulimit -f``; Python ignores SIGXFSZ, so writes fail with EFBIG)."""
+    import resource
+    import subprocess
+    import sys
+
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (fsize, fsize))
+
+    cmd = [sys.executable, "-c", script] if script else [sys.executable, "-m", "ams_torch", *map(str, args)]
+    return subprocess.run(cmd, preexec_fn=limit if fsize else None, capture_output=True, text=True, env=env,
+                          timeout=timeout, cwd=str(REPO))
+
+
+def one_error(p) -> str:
+    """The child failed cleanly: exit 2, no signal, no traceback, one ``error:`` line on stderr."""
+    lines = [line for line in p.stderr.splitlines() if line.strip()]
+    assert p.returncode == 2, (p.returncode, p.stderr[-3000:])
+    assert "Traceback" not in p.stderr and "Exception ignored" not in p.stderr, p.stderr[-3000:]
+    errors = [line for line in lines if line.startswith("error:")]
+    assert len(errors) == 1, lines[-10:]
+    return errors[0]
 
 
 def load_script(name: str):

@@ -36,13 +36,12 @@ from ams_torch.geometry.pose import Pose
 from ams_torch.solver import build as _native
 from ams_torch.stages.hair_hair import HairHair, hair_hair_stage
 from ams_torch.stages.hair_hair.native import g2p_op, p2g_op, pressure_op
+from ams_torch.testing import head_groom, two_wisps
 from ams_torch.stages.hair_hair.pressure import pressure_torch
 from ams_torch.stages.hair_hair.sparse import (active_cells, blocks_per_axis, densify, g2p_sparse, p2g_sparse,
                                               pressure_sparse)
 from ams_torch.stages.hair_hair.transfer import cell_mass, face_views, g2p_torch, p2g_torch, scene_frame
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_hair_hair import head_groom, two_wisps  # noqa: E402  (the tests' input factories)
 
 REPO = Path(__file__).resolve().parents[1]
 DTYPES = [torch.float64, torch.float32]
