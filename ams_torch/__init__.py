@@ -13,7 +13,8 @@ Everything else lives in the subpackages, which import downwards only (no cycles
 
     apps      motion, scene files, recipes, dataset generation and reading, render, CLI
     grooms    Groom, growth and presets, the default head, file formats (io)      → geometry
-    sim       Params, Model, State/Control/Config, forces, assembly, step, Simulator
+    sim       Params, ModelBuilder → Model, State/Control/Config, forces, assembly, stepping
+              (the stage table), Simulator
                                                                  → stages, solver, geometry
     stages    collisions (colliders), hair–hair grid, wind                        → geometry
     solver    the banded strand solve, its op and native kernels
