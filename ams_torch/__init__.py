@@ -13,8 +13,8 @@ Everything else lives in the subpackages, which import downwards only (no cycles
 
     apps      motion, scene files, recipes, dataset generation and reading, render, CLI
     grooms    Groom, growth and presets, the default head, file formats (io)      → geometry
-    sim       Params, Model, State/Control/Config, forces, assembly, step, Simulator
-                                                          → stages, solver, native, geometry
+    sim       Params, ModelBuilder → Model, State/Control/Config, forces, assembly, stepping
+              (the stage table), Simulator          → stages, solver, native, geometry
     stages    collisions (colliders), hair–hair grid, wind                → geometry, native
     solver    the banded strand solve and its op                                  → native
     native    lazy build and cache of the C++/CUDA kernels (csrc/), CUDA emulation
@@ -29,7 +29,7 @@ from ams_torch.native.build import native_status
 from ams_torch.sim.params import Params
 from ams_torch.sim.simulator import Simulator
 from ams_torch.sim.state import State
-from ams_torch.sim.step import SimulationDiverged
+from ams_torch.sim.stepping import SimulationDiverged
 from ams_torch.stages.collide import MeshCollider
 from ams_torch.stages.hair_hair import HairHair
 

@@ -1,8 +1,8 @@
-"""Input factories shared by the tests, the benchmarks and the demo.
+"""Input factories shared by the tests and the benchmarks (library code never imports this module).
 
 Simple, deterministic grooms and motions (metres, seconds, head frame with +y up):
 ``sphere_groom`` (strands on the upper half of a sphere "head"), ``curly_strand``,
-``wisp`` and ``shake_poses``.
+``wisp``, ``head_groom``, ``two_wisps`` and ``shake_poses``.
 """
 from __future__ import annotations
 
@@ -10,33 +10,20 @@ import math
 
 import torch
 
-from ams_torch.geometry.pose import Pose, axis_angle_to_matrix
+from ams_torch.apps.identify import at_material_points
+from ams_torch.apps.motion import Shake
 from ams_torch.grooms.simple import curly_strand, sphere_groom, wisp
 
-__all__ = ["sphere_groom", "curly_strand", "wisp", "shake_poses", "shape_deviation", "at_material_points",
+__all__ = ["sphere_groom", "curly_strand", "wisp", "head_groom", "two_wisps", "shake_poses", "shape_deviation", "at_material_points",
            "total_energy"]
 
 
 def shake_poses(frames: int, dt: float, amplitude: float = 0.6, frequency: float = 1.5,
                 axis=(0.0, 1.0, 0.0), translation_amplitude=(0.0, 0.0, 0.0), device=None,
                 dtype=torch.float32) -> list:
-    """A head shaking about ``axis``: angle(t) = amplitude·sin(2πft) radians, with exact
-    angular velocity, plus an optional sinusoidal translation (metres, same frequency).
-    Returns a list of :class:`Pose` for t = dt, 2dt, …, frames·dt (ends of frames)."""
-    axis = torch.as_tensor(axis, dtype=torch.float64)
-    axis = axis / axis.norm()
-    ta = torch.as_tensor(translation_amplitude, dtype=torch.float64)
-    poses = []
-    w = 2 * math.pi * frequency
-    for k in range(1, frames + 1):
-        t = k * dt
-        ang = amplitude * math.sin(w * t)
-        omega = amplitude * w * math.cos(w * t)
-        rot = axis_angle_to_matrix(axis * ang)
-        trans = ta * math.sin(w * t)
-        lin = ta * w * math.cos(w * t)
-        poses.append(Pose(rot, trans, lin, axis * omega).to(device=device, dtype=dtype))
-    return poses
+    """The end-of-frame poses t = dt, …, frames·dt of :class:`ams_torch.apps.motion.Shake`
+    (amplitude rad, frequency Hz, axis, translation_amplitude m): a list of :class:`Pose`."""
+    return Shake(amplitude, frequency, axis, translation_amplitude).poses(frames, dt, device=device, dtype=dtype)
 
 
 def shape_deviation(x: torch.Tensor, rest: torch.Tensor, align: bool = False) -> torch.Tensor:
@@ -56,28 +43,6 @@ def shape_deviation(x: torch.Tensor, rest: torch.Tensor, align: bool = False) ->
     diag = torch.cat((diag[..., :2], d[..., None]), -1)
     r = u @ torch.diag_embed(diag) @ vt
     return (xc @ r - rc).norm(dim=-1).mean(-1)
-
-
-def at_material_points(rest: torch.Tensor, x: torch.Tensor, points: int = 33) -> torch.Tensor:
-    """Positions of x at fixed material points: the rest arc-length fractions k / (points − 1).
-
-    rest: (S, N, 3) m, the rest shape that defines arc length; x: (..., S, N, 3) m, a simulated
-    state of that groom. Each material point is interpolated linearly along the simulated
-    polyline between the two particles whose rest arc lengths bracket it, so grooms of
-    different N can be compared point for point (errors in N are measured this way, not by
-    particle index). Returns (..., S, points, 3) m.
-    """
-    seg = (rest[:, 1:] - rest[:, :-1]).norm(dim=-1)
-    arc = torch.nn.functional.pad(seg.cumsum(-1), (1, 0))
-    arc = arc / arc[:, -1:]
-    u = torch.linspace(0, 1, points, dtype=rest.dtype, device=rest.device).expand(rest.shape[0], points).contiguous()
-    idx = torch.searchsorted(arc.contiguous(), u).clamp(1, rest.shape[1] - 1)  # (S, points)
-    a0, a1 = arc.gather(1, idx - 1), arc.gather(1, idx)
-    t = ((u - a0) / (a1 - a0)).clamp(0, 1)[..., None]
-    lead = x.shape[:-3]
-    gather = lambda i: torch.gather(x, -2, i[..., None].expand(lead + i.shape + (3,)))  # noqa: E731
-    x0, x1 = gather(idx - 1), gather(idx)
-    return x0 + t.to(x.dtype) * (x1 - x0)
 
 
 def total_energy(sim, state) -> torch.Tensor:
@@ -106,3 +71,43 @@ def total_energy(sim, state) -> torch.Tensor:
     cos = (ed * g).sum(-1) / (ed.norm(dim=-1) * g.norm(dim=-1))
     theta = torch.acos(cos.clamp(-1, 1))
     return e + 0.5 * (c.angular * ed.norm(dim=-1) * theta ** 2).sum()
+
+
+def head_groom(strands=1000, particles=32, radius=0.1, length=0.25, seed=0, dtype=torch.float64):
+    """Strands on the upper part of a sphere "head" of ``radius`` m at the origin (head frame, +y
+    up): each leaves the scalp along the normal and turns outward-and-down over ``length`` m
+    (±10 %). Vectorised and deterministic for a seed (the hair–hair tests' and benchmark's input).
+    Returns (strands, particles, 3) metres."""
+    g = torch.Generator().manual_seed(seed)
+    i = torch.arange(strands, dtype=torch.float64)
+    y = 1 - (i + 0.5) / strands * 0.95  # y ∈ (0.05, 1): Fibonacci points on the cap
+    t = math.pi * (3 - math.sqrt(5)) * i
+    rxz = (1 - y * y).sqrt()
+    n = torch.stack((rxz * t.cos(), y, rxz * t.sin()), -1)
+    n = n + 0.01 * torch.randn(strands, 3, generator=g, dtype=torch.float64)
+    n = n / n.norm(dim=-1, keepdim=True)
+    horiz = n * torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64)
+    hn = horiz.norm(dim=-1, keepdim=True)
+    horiz = torch.where(hn > 1e-3, horiz / hn.clamp_min(1e-9), torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64))
+    down = torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64)
+    s = torch.linspace(0, 1, particles - 1, dtype=torch.float64)
+    w = (3 * s).clamp(max=1.0)
+    w = (w * w * (3 - 2 * w))[None, :, None]  # smoothstep: normal → outward-and-down
+    d = (1 - w) * n[:, None, :] + w * (0.35 * horiz + down)[:, None, :]
+    d = d / d.norm(dim=-1, keepdim=True)
+    step = length * (1 + 0.1 * (2 * torch.rand(strands, 1, 1, generator=g, dtype=torch.float64) - 1)) / (particles - 1)
+    x = torch.cat((radius * n[:, None, :], radius * n[:, None, :] + torch.cumsum(step * d, 1)), 1)
+    return x.to(dtype)
+
+
+def two_wisps(strands=64, n=8, width=0.04, length=0.08, gap=0.05, seed=0, dtype=torch.float64):
+    """Two wisps of vertical strands with random roots, side by side along x. Returns (2·strands, n, 3)."""
+    g = torch.Generator().manual_seed(seed)
+    out = []
+    for cx in (-gap / 2, gap / 2):
+        roots = (torch.rand(strands, 3, generator=g, dtype=torch.float64) - 0.5) * width
+        roots[:, 1] = 0
+        roots[:, 0] += cx
+        y = -torch.linspace(0, length, n, dtype=torch.float64)
+        out.append(roots[:, None, :] + torch.stack((0 * y, y, 0 * y), -1)[None])
+    return torch.cat(out).to(dtype)

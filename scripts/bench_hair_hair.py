@@ -38,7 +38,6 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))
 
 from ams_torch._bench import machine, shown_args, sync  # noqa: E402
 from ams_torch.geometry.pose import Pose  # noqa: E402
@@ -47,7 +46,7 @@ from ams_torch.stages.hair_hair import HairHair, hair_hair_stage  # noqa: E402
 from ams_torch.stages.hair_hair.pressure import pressure_torch  # noqa: E402
 from ams_torch.stages.hair_hair.sparse import p2g_sparse  # noqa: E402
 from ams_torch.stages.hair_hair.transfer import g2p_torch, p2g_torch, scene_frame  # noqa: E402
-from test_hair_hair import head_groom  # noqa: E402  (the tests' input factory)
+from ams_torch.testing import head_groom  # noqa: E402  (the tests' input factory)
 
 MASS = 1e-6  # kg per particle
 DT = 1.0 / 60.0

@@ -7,10 +7,11 @@ switch off or alter one suspect, against a time reference of the same variant (s
 strands, M_ref substeps), and the sensitivity of each variant to a 1e-12 m/s perturbation of the
 initial velocities. See docs/roller_coaster.md for the results.
 
-Variants (each a scene edit and/or a monkeypatched copy of ``ams_torch.sim.step.step``, made in
-this script only; the library files are not touched):
+Variants (each a scene edit and/or the library's step with some of its stages replaced through the
+stage table, :func:`ams_torch.sim.stepping.replace_stage`; the library files are not touched):
 
-    base            the scene as it is (the copy of the step is checked bit-identical to the library)
+    base            the scene as it is (the variant stages with default options are checked
+                    bit-identical to the library's)
     no_collisions   [stages].collisions = false
     hookean         [stages].nonhookean = false (Hookean integrity, no plastic yield)
     no_yield        non-Hookean curve kept, plastic update replaced by a no-op
@@ -44,7 +45,6 @@ Runs are cached (``--cache``, default /tmp/roller_coaster_cache) so an interrupt
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
 import functools
 import hashlib
@@ -64,7 +64,7 @@ REPO = Path(__file__).resolve().parents[1]
 #: disturbed by edits made in the working tree while it runs.
 LIBRARY = Path(os.environ.get("AMS_TORCH_LIBRARY", str(REPO))).resolve()
 sys.path.insert(0, str(LIBRARY))
-# Variants with step options run a copy of the torch definition of the step (torch backend); the
+# Variants with step options run the step with variant stages (torch definition, torch backend); the
 # check compares it with the library's step on the torch backend too (bit for bit). Variants
 # without step options (scene or Params edits only) run the library's own step on its default
 # backend (the native kernels, float64 parity ~1e-14): ``--torch`` puts everything on torch.
@@ -72,16 +72,13 @@ if "--torch" in sys.argv:
     os.environ["AMS_TORCH_NATIVE"] = "0"
 
 from ams_torch.apps.scene import build, load_scene  # noqa: E402
-import importlib  # noqa: E402
-step_mod = importlib.import_module("ams_torch.sim.step")
-dynamics_mod = importlib.import_module("ams_torch.sim.dynamics")
-from ams_torch.sim.dynamics import frame_dynamics, inextensibility, substep_poses, substep_targets, _external  # noqa: E402
+from ams_torch.sim.dynamics import frame_dynamics, substep_poses, substep_targets, _external  # noqa: E402
 from ams_torch.sim.assembly import assemble_system  # noqa: E402
 from ams_torch.sim.contact import substep_contact  # noqa: E402
 from ams_torch.sim.inextensibility import follow_the_leader as library_ftl  # noqa: E402
-from ams_torch.sim.model import coefficients  # noqa: E402
-from ams_torch.sim.state import State  # noqa: E402
-from ams_torch.sim.step import SimulationDiverged  # noqa: E402
+from ams_torch.sim.forces import safe_normalize  # noqa: E402
+from ams_torch.sim.stepping import (STAGES, SimulationDiverged, finish_stage, plastic_update,  # noqa: E402
+                                    replace_stage, wrap_stage)
 from ams_torch.solver.op import solve_banded  # noqa: E402
 from ams_torch.stages.collide import resolve_world_poses  # noqa: E402
 from ams_torch.stages.collide.poses import flat_pose  # noqa: E402
@@ -176,7 +173,7 @@ def collide_variant(x, v, dt, colliders, world_poses, free=None, *, tol=0.0, ski
 
 
 def collisions_variant(model, config, x, v, head_pose, collider_poses, dt, opts, stats):
-    """A copy of :func:`ams_torch.sim.step.collisions` with the frame length ``dt`` given (the
+    """A copy of :func:`ams_torch.sim.stepping.collisions` with the frame length ``dt`` given (the
     per-substep variant passes Δt') and :func:`collide_variant`."""
     cols = list(model.colliders)
     poses = resolve_world_poses(cols, head_pose, list(collider_poses) or None)
@@ -185,7 +182,7 @@ def collisions_variant(model, config, x, v, head_pose, collider_poses, dt, opts,
     x, v = collide_variant(x, v, dt, cols, poses, free=free, **kw)
     if config.inextensibility:
         for _ in range(config.collision_rounds):
-            x, v = inextensibility(model, config, x, v, head_pose, dt)
+            x, v = variant_inextensibility(model, config, x, v, head_pose, dt, opts)
             x, v = collide_variant(x, v, 0.0, cols, poses, free=free, **kw)
     return x, v
 
@@ -220,7 +217,7 @@ def dynamics_per_substep(model, coeffs, config, state, pose0, pose1, hermite, co
         x = torch.where(pinned, target, x + h * v)
         pv = pose1 if s + 1 == m_sub else pb  # interpolated poses carry (interpolated) velocities
         if config.inextensibility and "ftl" in ops:
-            x, v = inextensibility(model, config, x, v, pv, h)
+            x, v = variant_inextensibility(model, config, x, v, pv, h, opts)
         if config.colliders and "stage" in ops:
             x, v = collisions_variant(model, config, x, v, pv, control.collider_poses, h, opts, stats)
         if config.colliders and "contact" in ops:
@@ -229,68 +226,79 @@ def dynamics_per_substep(model, coeffs, config, state, pose0, pose1, hermite, co
                                    friction=opts["friction"], stats=stats)
         if nonhookean and opts["plastic"] and "yield" in ops:
             before = ghost_rest
-            ghost_rest = step_mod.plastic_update(model, coeffs, x, ghost_rest, sag_offset, pv)
+            ghost_rest = plastic_update(model, coeffs, x, ghost_rest, sag_offset, pv)
             stats["yield"] += int((ghost_rest != before).any(-1).sum())
             y_b = pb.to_world(ghost_rest)
         y_a = y_b
         if nonhookean:
             offset = pb.rotate(sag_offset)
     if config.inextensibility and "ftl" not in ops:
-        x, v = inextensibility(model, config, x, v, pose1, dt)
+        x, v = variant_inextensibility(model, config, x, v, pose1, dt, opts)
     if config.colliders and "stage" not in ops:
         x, v = collisions_variant(model, config, x, v, pose1, control.collider_poses, dt, opts, stats)
     return x, v, ghost_rest
 
 
-def step_variant(model, state, control, config, timer=None, *, opts, stats):
-    """A copy of :func:`ams_torch.sim.step.step` (hair–hair omitted: the roller coaster has none)
-    with the variant's options; with the default options it is the library's arithmetic."""
-    assert not config.hair_hair, "this copy of the step has no hair–hair stage"
-    dt = config.dt
-    pose0 = state.pose
-    pose1, hermite = step_mod.resolve_pose(pose0, control.pose, dt)
-    coeffs = coefficients(model)
-    time_ = state.time if control.time is None else control.time
-    ghost_rest = state.ghost_rest
+def variant_stages(opts: dict, stats: dict) -> tuple:
+    """The library's stages (:data:`ams_torch.sim.stepping.STAGES`) with the variant's dynamics,
+    collisions, finish and yield (torch definition; hair–hair as in the library). With the default
+    options it is the library's arithmetic on the torch backend (checked bit for bit)."""
     ops = set(opts["per_substep"])
-    if ops:
-        x, v, ghost_rest = dynamics_per_substep(model, coeffs, config, state, pose0, pose1, hermite, control, opts,
-                                                stats)
-    else:
-        cfg = config if opts["frame_ftl"] else dataclasses.replace(config, inextensibility=False)
-        contact = None  # the library's Params(contact="substep"), as step.step passes it
+
+    def dynamics(f):
+        config = f.config
+        if ops:  # the per-substep dynamics run the collision stage too
+            x, v, ghost_rest = dynamics_per_substep(f.model, f.coeffs, config, f.state, f.state.pose, f.pose1,
+                                                    f.hermite, f.control, opts, stats)
+            return f.replace(x=x, v=v, ghost_rest=ghost_rest, speed=None)
+        contact = None  # the library's Params(contact="substep"), as its dynamics stage passes it
         if config.contact == "substep" and config.colliders:
-            contact = functools.partial(substep_contact, model, config, collider_poses=control.collider_poses)
-        x, v = frame_dynamics(model, coeffs, cfg, state.x, state.v, state.ghost_rest, state.sag_offset, pose0,
-                              pose1, hermite, time_, control.external_force, contact=contact)
-        if config.colliders:
-            x, v = collisions_variant(model, config, x, v, pose1, control.collider_poses, dt, opts, stats)
-    v, diverged_frame, diverged_input = step_mod._finish(model, config, state, control, x, v, pose1)
-    if config.nonhookean and opts["plastic"] and "yield" not in ops:
-        before = ghost_rest
-        ghost_rest = step_mod.plastic_update(model, coeffs, x, ghost_rest, state.sag_offset, pose1)
-        stats["yield"] += int((ghost_rest != before).any(-1).sum())
-    return State(x=x, v=v, ghost_rest=ghost_rest, sag_offset=state.sag_offset, pose=pose1, time=time_ + dt,
-                 frame=state.frame + 1, diverged_frame=diverged_frame, diverged_input=diverged_input)
+            contact = functools.partial(substep_contact, f.model, config, collider_poses=f.control.collider_poses)
+        state = f.state
+        time_ = state.time if f.control.time is None else f.control.time
+        x, v = frame_dynamics(f.model, f.coeffs, dataclasses.replace(config, inextensibility=False), state.x,
+                              state.v, state.ghost_rest, state.sag_offset, state.pose, f.pose1, f.hermite, time_,
+                              f.control.external_force, contact=contact)
+        if config.inextensibility and opts["frame_ftl"]:  # the frame's FTL, at the last substep pose
+            last = substep_poses(state.pose, f.pose1, f.hermite, config.substeps, config.dt)[-1]
+            x, v = variant_inextensibility(f.model, config, x, v, last, config.dt, opts)
+        return f.replace(x=x, v=v, speed=None)
+
+    def collide(f):
+        if ops:
+            return f
+        x, v = collisions_variant(f.model, f.config, f.x, f.v, f.pose1, f.control.collider_poses, f.config.dt, opts,
+                                  stats)
+        return f.replace(x=x, v=v)
+
+    def counted(run):
+        def plastic(f):
+            if not opts["plastic"] or "yield" in ops:
+                return f
+            out = run(f)
+            stats["yield"] += int((out.ghost_rest != f.ghost_rest).any(-1).sum())
+            return out
+        return plastic
+
+    stages = replace_stage(STAGES, "dynamics", dynamics)
+    stages = replace_stage(stages, "collisions", collide)
+    stages = replace_stage(stages, "finish", lambda f: finish_stage(f.replace(native=False)))
+    return wrap_stage(stages, "yield", counted)
 
 
-@contextlib.contextmanager
-def patched_step(opts: dict | None, stats: dict):
-    """Within the block, ``Simulator.step`` runs :func:`step_variant` with ``opts`` (None: the library's step)."""
-    if opts is None:
-        yield
-        return
-    original, ftl = step_mod.step, dynamics_mod.follow_the_leader
-    step_mod.step = functools.partial(step_variant, opts=opts, stats=stats)
+def variant_inextensibility(model, config, x, v, pose, dt, opts):
+    """:func:`ams_torch.sim.dynamics.inextensibility` with the variant's follow-the-leader:
+    ``opts["ftl_limit"]`` (a strain limiter: edges kept within ± the limit; 0: exact lengths) and
+    ``opts["ftl_velocity"]`` ("none": positions projected, velocities left as they were)."""
+    rest = model.rest_positions
+    fallback = safe_normalize(pose.rotate((rest[:, 1:, :] - rest[:, :-1, :]).expand(
+        x.shape[:-3] + (rest.shape[0], rest.shape[1] - 1, 3))))[0]
     if opts["ftl_limit"]:
-        dynamics_mod.follow_the_leader = functools.partial(library_ftl, limit=opts["ftl_limit"])
-    if opts["ftl_velocity"] == "none":  # positions projected, velocities left as they were
-        inner = dynamics_mod.follow_the_leader
-        dynamics_mod.follow_the_leader = lambda x, v, *a, **k: (inner(x, v, *a, **k)[0], v)
-    try:
-        yield
-    finally:
-        step_mod.step, dynamics_mod.follow_the_leader = original, ftl
+        x2, v2 = library_ftl(x, v, model.edge_rest_length, model.pinned, dt, config.ftl_damping, fallback,
+                             limit=opts["ftl_limit"])
+    else:
+        x2, v2 = library_ftl(x, v, model.edge_rest_length, model.pinned, dt, config.ftl_damping, fallback)
+    return (x2, v) if opts["ftl_velocity"] == "none" else (x2, v2)
 
 
 # ------------------------------------------------------------------------------------- runs
@@ -307,10 +315,10 @@ def build_variant(name: str, substeps: int, frames: int, strands: int, particles
 def simulate_variant(name: str, substeps: int, frames: int, strands: int, particles: int, perturb: float = 0.0,
                      library=False, force_copy: bool = False) -> dict:
     """One run. ``perturb``: m/s added to the initial velocity of every free particle (fixed random
-    directions). A variant with step options runs the copy of the step (torch backend), one without
-    the library's own step (default backend; the contact counts of ``stats`` come from the copy
+    directions). A variant with step options runs the variant stages (torch backend), one without
+    the library's own step (default backend; the contact counts of ``stats`` come from the variant
     only). ``library``: the library's step even so (``"torch"``: on the torch backend, the check);
-    ``force_copy``: the copy even without options (the check). Returns ``x`` (F, S, N, 3) float64 m,
+    ``force_copy``: the variant stages even without options (the check). Returns ``x`` (F, S, N, 3) float64 m,
     ``stats`` and ``wall_s``."""
     run = build_variant(name, substeps, frames, strands, particles)
     sim = run.sim
@@ -329,18 +337,19 @@ def simulate_variant(name: str, substeps: int, frames: int, strands: int, partic
     xs = []
     t0 = time.perf_counter()
     diverged = None
-    with patched_step(opts, stats):
-        for k in range(frames):
-            pose = run.motion((k + 1) * dt, dtype=torch.float64)
-            try:
-                state = sim.step(state, pose)
-            except SimulationDiverged as err:  # the rest of the run is NaN
-                diverged = f"frame {err.frame}: {str(err)[:200]}"
-                xs += [torch.full_like(state.x, float("nan"))] * (frames - k)
-                break
-            xs.append(state.x.detach().clone())
-            for k2 in ("inside", "near", "yield"):
-                stats.setdefault(f"{k2}_per_frame", []).append(stats[k2])
+    if opts is not None:
+        sim.stages = variant_stages(opts, stats)
+    for k in range(frames):
+        pose = run.motion((k + 1) * dt, dtype=torch.float64)
+        try:
+            state = sim.step(state, pose)
+        except SimulationDiverged as err:  # the rest of the run is NaN
+            diverged = f"frame {err.frame}: {str(err)[:200]}"
+            xs += [torch.full_like(state.x, float("nan"))] * (frames - k)
+            break
+        xs.append(state.x.detach().clone())
+        for k2 in ("inside", "near", "yield"):
+            stats.setdefault(f"{k2}_per_frame", []).append(stats[k2])
     return {"x": torch.stack(xs), "stats": stats, "wall_s": time.perf_counter() - t0, "diverged": diverged}
 
 
@@ -376,9 +385,10 @@ def study(args, log) -> dict:
         b = simulate_variant("base", 2, min(args.frames, 12), args.strands, args.particles, library="torch")
         same = bool(torch.equal(a["x"], b["x"]))
         out["copy_bit_identical"] = same
-        log(f"check: the copy of the step is bit-identical to the library's over {a['x'].shape[0]} frames: {same}")
+        log(f"check: the variant stages (default options) are bit-identical to the library's step over "
+            f"{a['x'].shape[0]} frames: {same}")
         if not same:
-            raise SystemExit("the step copy differs from the library; fix step_variant first")
+            raise SystemExit("the variant stages differ from the library; fix variant_stages first")
     for name in args.variants:
         t0 = time.perf_counter()
         runs = {}

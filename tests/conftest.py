@@ -1,3 +1,6 @@
+import os
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -27,6 +30,84 @@ def built_native(kind: str):
     ns = build.native_ops(kind)
     assert ns is not None, f"native {kind} kernels failed to build: {build.native_status()[kind]['reason']}"
     return ns
+
+
+@pytest.fixture(scope="session")
+def head():
+    """The default head mesh (``ams_torch.default_head()``), once per session."""
+    from ams_torch.grooms.head import default_head
+
+    return default_head()
+
+
+@pytest.fixture(scope="session")
+def head_sdf(head, tmp_path_factory):
+    """The default head's 64³ signed-distance grid, built once per session."""
+    from ams_torch.geometry.sdf import SDFGrid
+
+    return SDFGrid.from_mesh(head, resolution=64, cache_dir=tmp_path_factory.mktemp("sdf"))
+
+
+# The native builds, each loaded once per session (skips as ``built_native``).
+@pytest.fixture(scope="session")
+def frame_ops():
+    return built_native("frame_cpu")
+
+
+@pytest.fixture(scope="session")
+def collide_ops():
+    return built_native("collide_cpu")
+
+
+@pytest.fixture(scope="session")
+def grid_ops():
+    return built_native("grid_cpu")
+
+
+def rel(a: torch.Tensor, b: torch.Tensor) -> float:
+    """‖a − b‖ / ‖b‖ in float64 on the CPU (‖a − b‖ when b is 0): the parity tests' error."""
+    a, b = a.double().cpu(), b.double().cpu()
+    den = b.norm().item()
+    return (a - b).norm().item() / den if den > 0 else (a - b).norm().item()
+
+
+def sha(path) -> str:
+    """The SHA-256 of a file's bytes (hex)."""
+    import hashlib
+
+    with open(path, "rb") as f:
+        return hashlib.sha256(f.read()).hexdigest()
+
+
+#: the repository's root folder
+REPO = Path(__file__).resolve().parents[1]
+
+
+def run_cli(args, fsize=None, timeout=180, script=None):
+    """``python -m ams_torch ARGS`` (or ``python -c SCRIPT``) in a child process, with a file size
+    limit of ``fsize`` bytes (``ulimit -f``; Python ignores SIGXFSZ, so writes fail with EFBIG)."""
+    import resource
+    import subprocess
+    import sys
+
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (fsize, fsize))
+
+    cmd = [sys.executable, "-c", script] if script else [sys.executable, "-m", "ams_torch", *map(str, args)]
+    return subprocess.run(cmd, preexec_fn=limit if fsize else None, capture_output=True, text=True, env=env,
+                          timeout=timeout, cwd=str(REPO))
+
+
+def one_error(p) -> str:
+    """The child failed cleanly: exit 2, no signal, no traceback, one ``error:`` line on stderr."""
+    lines = [line for line in p.stderr.splitlines() if line.strip()]
+    assert p.returncode == 2, (p.returncode, p.stderr[-3000:])
+    assert "Traceback" not in p.stderr and "Exception ignored" not in p.stderr, p.stderr[-3000:]
+    errors = [line for line in lines if line.startswith("error:")]
+    assert len(errors) == 1, lines[-10:]
+    return errors[0]
 
 
 def load_script(name: str):

@@ -1,5 +1,4 @@
 """The ams-torch command line end to end on a tiny scene."""
-import hashlib
 import json
 import os
 import signal
@@ -11,6 +10,7 @@ import h5py
 import pytest
 import imageio.v3 as iio
 import numpy as np
+from conftest import sha
 
 from ams_torch.apps.cli import main, read_sequence
 from ams_torch.apps.datagen import generate, shard_filename
@@ -265,10 +265,6 @@ type = { choice = ["shake", "nod"] }
 [store]
 guides = 4
 """
-
-
-def sha(path):
-    return hashlib.sha256(open(path, "rb").read()).hexdigest()
 
 
 def _kill_tree(proc):

@@ -15,7 +15,7 @@ import os
 
 import pytest
 import torch
-from conftest import built_native
+from conftest import built_native, rel
 from test_cuda_emulation import expected_warp_ops
 from test_native_collide import make_colliders, make_case
 from test_native_frame import F32, F64, case_scene, frame_args, make_scene, native_frame, native_system, set_pinned
@@ -40,12 +40,6 @@ def backend(base: str):
     if DEVICE == "cpu":
         kind = {"banded": "cpu", "selftest": "selftest_cuda_emu"}.get(base, f"{base}_cpu")
     return built_native(kind)
-
-
-def rel(a, b) -> float:
-    a, b = a.double().cpu(), b.double().cpu()
-    den = float(b.norm())
-    return float((a - b).norm()) / den if den > 0 else float((a - b).norm())
 
 
 def bounded(dev32, cpu32, ref64) -> bool:

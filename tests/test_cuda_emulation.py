@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import built_native
+from conftest import built_native, rel
 from test_native_collide import make_case
 from test_native_frame import FRAME_CASES, case_scene, frame_args, native_frame, native_system
 from test_native_grid import _solve_args, squeeze_scene, tol as grid_tol
@@ -50,12 +50,6 @@ SCHEDULES = {
     "reverse_grid1": {"order": "reverse", "max_grid": "1"},
     "shuffle_2workers_grid3": {"order": "shuffle", "seed": "5", "workers": "2", "max_grid": "3"},
 }
-
-
-def rel(a: torch.Tensor, b: torch.Tensor) -> float:
-    a, b = a.double(), b.double()
-    den = b.norm().item()
-    return (a - b).norm().item() / den if den > 0 else (a - b).norm().item()
 
 
 @pytest.fixture

@@ -10,7 +10,7 @@ import ams_torch
 from ams_torch import testing
 from ams_torch.geometry.pose import Pose
 from ams_torch.sim.cuda_graph import GraphedStep, eager_capture
-from ams_torch.sim.step import SimulationDiverged
+from ams_torch.sim.stepping import SimulationDiverged
 from ams_torch.stages.collide import SphereCollider
 from ams_torch.stages.hair_hair import HairHair
 

@@ -8,6 +8,7 @@ import h5py
 import numpy as np
 import pytest
 import torch
+from conftest import sha
 
 from ams_torch.apps.cli import main
 from ams_torch.apps.data import DatasetError, HairSequenceDataset, read_scene_meshes, validate, validate_file
@@ -76,10 +77,6 @@ def positions_by_index(folder):
                 for k in (k for k in f if k.startswith("seq_")):
                     out[int(f[k].attrs["index"])] = (f[k]["positions"][()], f[k].attrs["checksum"])
     return out
-
-
-def sha(path):
-    return hashlib.sha256(open(path, "rb").read()).hexdigest()
 
 
 @pytest.fixture(scope="module")

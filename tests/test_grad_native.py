@@ -40,9 +40,7 @@ def _gradients(backend: str, params: at.Params, learnable=MATERIAL, frames: int 
                   hair_hair=at.HairHair(resolution=8, pressure_iterations=10)) if every_stage else {}
     sim = at.Simulator(rest, params, dtype=dtype, learnable=learnable, backend=backend, **stages)
     if pinned is not None:  # a different pinned prefix per strand
-        counts = torch.as_tensor(pinned, dtype=torch.int64)
-        sim.model.num_pinned = counts
-        sim.model.pinned = torch.arange(8)[None, :] < counts[:, None]
+        sim.model.set_pinned(pinned)
     g = torch.Generator().manual_seed(3)
     batch = (scenes,) if scenes else ()
     shape = batch + rest.shape

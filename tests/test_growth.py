@@ -24,18 +24,6 @@ def sphere():
     return m
 
 
-@pytest.fixture(scope="module")
-def head():
-    from ams_torch.grooms.head import default_head
-    return default_head()
-
-
-@pytest.fixture(scope="module")
-def head_sdf(head, tmp_path_factory):
-    from ams_torch.geometry.sdf import SDFGrid
-    return SDFGrid.from_mesh(head, resolution=64, cache_dir=tmp_path_factory.mktemp("sdf"))
-
-
 def exact_signed_distance(mesh, points):
     """Exact σ (m, negative inside) from closest points and the winding number (pcu)."""
     pcu = pytest.importorskip("point_cloud_utils")

@@ -5,50 +5,17 @@ import pytest
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
+from conftest import DEVICES
+
 from ams_torch.stages.hair_hair import HairHair, build_hair_hair, grid_density, hair_hair_stage, make_stage
 from ams_torch.stages.hair_hair.detailed import detailed_collisions
 from ams_torch.geometry.pose import Pose
+from ams_torch.testing import head_groom, two_wisps
 
-DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 DT = 1.0 / 60.0
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_cpu_thread():
-    """These tests use small tensors; on a CPU shared with other jobs, two OpenMP threads made
-    them ~15× slower (each parallel op waits for a busy core). Restored afterwards."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 MASS = 1e-6  # kg per particle
-
-
-def head_groom(strands=1000, particles=32, radius=0.1, length=0.25, seed=0, dtype=torch.float64):
-    """Strands on the upper part of a sphere "head" of ``radius`` m at the origin (head frame, +y
-    up): each leaves the scalp along the normal and turns outward-and-down over ``length`` m
-    (±10 %). Vectorised and deterministic for a seed (also the benchmark's input factory).
-    Returns (strands, particles, 3) metres."""
-    g = torch.Generator().manual_seed(seed)
-    i = torch.arange(strands, dtype=torch.float64)
-    y = 1 - (i + 0.5) / strands * 0.95  # y ∈ (0.05, 1): Fibonacci points on the cap
-    t = math.pi * (3 - math.sqrt(5)) * i
-    rxz = (1 - y * y).sqrt()
-    n = torch.stack((rxz * t.cos(), y, rxz * t.sin()), -1)
-    n = n + 0.01 * torch.randn(strands, 3, generator=g, dtype=torch.float64)
-    n = n / n.norm(dim=-1, keepdim=True)
-    horiz = n * torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64)
-    hn = horiz.norm(dim=-1, keepdim=True)
-    horiz = torch.where(hn > 1e-3, horiz / hn.clamp_min(1e-9), torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64))
-    down = torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64)
-    s = torch.linspace(0, 1, particles - 1, dtype=torch.float64)
-    w = (3 * s).clamp(max=1.0)
-    w = (w * w * (3 - 2 * w))[None, :, None]  # smoothstep: normal → outward-and-down
-    d = (1 - w) * n[:, None, :] + w * (0.35 * horiz + down)[:, None, :]
-    d = d / d.norm(dim=-1, keepdim=True)
-    step = length * (1 + 0.1 * (2 * torch.rand(strands, 1, 1, generator=g, dtype=torch.float64) - 1)) / (particles - 1)
-    x = torch.cat((radius * n[:, None, :], radius * n[:, None, :] + torch.cumsum(step * d, 1)), 1)
-    return x.to(dtype)
 
 
 def moving_pose(dtype=torch.float64, device="cpu"):
@@ -64,19 +31,6 @@ def lattice_strands(k=6, n=6, spacing=0.01, length=0.08, dtype=torch.float64):
     roots = torch.stack((xx.reshape(-1), torch.zeros(k * k, dtype=dtype), zz.reshape(-1)), -1)
     y = -torch.linspace(0, length, n, dtype=dtype)
     return roots[:, None, :] + torch.stack((0 * y, y, 0 * y), -1)[None]
-
-
-def two_wisps(strands=64, n=8, width=0.04, length=0.08, gap=0.05, seed=0, dtype=torch.float64):
-    """Two wisps of vertical strands with random roots, side by side along x. Returns (2·strands, n, 3)."""
-    g = torch.Generator().manual_seed(seed)
-    out = []
-    for cx in (-gap / 2, gap / 2):
-        roots = (torch.rand(strands, 3, generator=g, dtype=torch.float64) - 0.5) * width
-        roots[:, 1] = 0
-        roots[:, 0] += cx
-        y = -torch.linspace(0, length, n, dtype=torch.float64)
-        out.append(roots[:, None, :] + torch.stack((0 * y, y, 0 * y), -1)[None])
-    return torch.cat(out).to(dtype)
 
 
 def close_pairs(x, radius):
@@ -382,7 +336,7 @@ def test_grid_overflow_is_an_error_from_check_naming_the_frame(backend):
     capacity; a grid that holds the hair keeps the flag at −1."""
     from ams_torch.sim.params import Params
     from ams_torch.sim.simulator import Simulator
-    from ams_torch.sim.step import GridOverflow, SimulationDiverged
+    from ams_torch.sim.stepping import GridOverflow, SimulationDiverged
 
     rest = head_groom(40, 8, length=0.12)
     params = Params(check_every=0)

@@ -14,16 +14,6 @@ from ams_torch.geometry.sdf import SDFGrid, sdf_cache_dir
 pcu = pytest.importorskip("point_cloud_utils")
 
 
-@pytest.fixture(scope="session")
-def head():
-    return default_head()
-
-
-@pytest.fixture(scope="session")
-def head_sdf64(head, tmp_path_factory):
-    return SDFGrid.from_mesh(head, resolution=64, cache_dir=tmp_path_factory.mktemp("sdf"))
-
-
 def exact_signed_distance(mesh, points):
     """Reference σ (float64): exact closest-point distance, sign by ray parity (independent of
     the winding number the grid uses)."""
@@ -231,10 +221,10 @@ def test_tfxmesh_reading_and_broken_files(tmp_path):
 # SDF grid
 # ---------------------------------------------------------------------------------------
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_sdf_accuracy_near_the_head(head, head_sdf64, dtype):
+def test_sdf_accuracy_near_the_head(head, head_sdf, dtype):
     pts = near_surface_points(head, 1000, -0.01, 0.02, seed=1)
     exact = exact_signed_distance(head, pts)
-    grid = head_sdf64.to(dtype=dtype)
+    grid = head_sdf.to(dtype=dtype)
     sigma = grid.distance(torch.as_tensor(pts, dtype=dtype))
     assert sigma.dtype == dtype and sigma.shape == (1000,)
     err = np.abs(sigma.double().numpy() - exact)
@@ -251,30 +241,30 @@ def test_sdf_accuracy_near_the_head(head, head_sdf64, dtype):
     assert np.median(cos) > 0.97 and (cos > 0.5).mean() > 0.97
 
 
-def test_sdf_sign_matches_containment(head, head_sdf64):
+def test_sdf_sign_matches_containment(head, head_sdf):
     rng = np.random.default_rng(7)
     lo, hi = head.bounds
     pts = rng.uniform(lo - 0.03, hi + 0.03, size=(4000, 3))
     inside = ray_parity_inside(head, pts)
-    sigma = head_sdf64.distance(torch.as_tensor(pts, dtype=torch.float32)).numpy()
-    band = np.abs(sigma) > head_sdf64.voxel_size
+    sigma = head_sdf.distance(torch.as_tensor(pts, dtype=torch.float32)).numpy()
+    band = np.abs(sigma) > head_sdf.voxel_size
     assert inside[band].sum() > 500 and (~inside[band]).sum() > 500  # both signs well covered
     np.testing.assert_array_equal(sigma[band] < 0, inside[band])
 
 
-def test_sdf_outside_the_box_and_gradients(head, head_sdf64):
+def test_sdf_outside_the_box_and_gradients(head, head_sdf):
     far = torch.tensor([[1.0, 0.0, 0.0], [0.0, -2.0, 0.0], [0.3, 0.4, -0.5]], dtype=torch.float64)
-    sigma, n = head_sdf64.to(dtype=torch.float64).distance_and_normal(far)
+    sigma, n = head_sdf.to(dtype=torch.float64).distance_and_normal(far)
     exact = exact_signed_distance(head, far.numpy())
     # clamp-to-box plus distance to the box: positive, and an upper bound within a few per cent
     assert (sigma > 0).all()
-    h = head_sdf64.voxel_size
+    h = head_sdf.voxel_size
     assert (sigma.numpy() >= exact - h).all() and (sigma.numpy() <= 1.03 * exact + h).all()
     # the normal far away points roughly away from the head
     assert ((n * far).sum(-1) / far.norm(dim=-1) > 0.7).all()
     # differentiable w.r.t. points; the gradient of σ is close to the normal
     p = torch.tensor([[0.0, 0.15, 0.0], [0.12, 0.0, 0.0]], dtype=torch.float64, requires_grad=True)
-    grid = head_sdf64.to(dtype=torch.float64)
+    grid = head_sdf.to(dtype=torch.float64)
     grid.distance(p).sum().backward()
     _, n_p = grid.distance_and_normal(p.detach())
     cos = torch.nn.functional.cosine_similarity(p.grad, n_p, dim=-1)

@@ -118,3 +118,60 @@ def test_the_top_level_is_small():
                                                 "__version__")]
     assert len(names) <= 13, names
     assert callable(at.native_status) and "cpu" in at.native_status()
+
+
+def _private_calls(path: Path) -> set:
+    """Private names a file calls as an attribute of another object (``obj._name(...)``, not
+    ``self``/``cls``/``super()``): a call into another module that no import shows."""
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute):
+            name, owner = node.func.attr, node.func.value
+            if not name.startswith("_") or name.startswith("__"):
+                continue
+            if isinstance(owner, ast.Name) and owner.id in ("self", "cls"):
+                continue
+            if isinstance(owner, ast.Call) and isinstance(owner.func, ast.Name) and owner.func.id == "super":
+                continue
+            out.add(name)
+    return out
+
+
+def _defined(path: Path) -> set:
+    return {n.name for n in ast.walk(ast.parse(path.read_text()))
+            if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))}
+
+
+def test_no_call_cycles_between_modules_of_one_package():
+    """Within one package, the dependency graph has no cycle when it counts, besides imports
+    (any scope), calls of another module's private functions or methods
+    (``recipe._concrete_motion(...)`` from a module that the recipe's module imports): the
+    cycles that an import graph alone does not show."""
+    modules = dict(_modules())
+    defined = {name: _defined(path) for name, path in modules.items()}
+    graph = {}
+    for name, path in modules.items():
+        package = name.rpartition(".")[0] if path.name != "__init__.py" else name
+        edges = set(_imports(name, path))
+        own = defined[name]
+        for called in _private_calls(path) - own:
+            edges |= {m for m in modules if m.rpartition(".")[0] == package and called in defined[m]}
+        graph[name] = {t for t in edges if t in modules and t != name and t.rpartition(".")[0] == package
+                       and not modules[t].name == "__init__.py"}
+    cycles = []
+    for start in graph:  # a short DFS per module: the packages are small
+        stack = [(start, [start])]
+        while stack:
+            node, trail = stack.pop()
+            for nxt in graph[node]:
+                if nxt == start:
+                    cycles.append(" -> ".join(trail + [start]))
+                elif nxt not in trail and len(trail) < 8:
+                    stack.append((nxt, trail + [nxt]))
+    assert not cycles, "call/import cycles within a package:\n" + "\n".join(sorted(set(cycles))[:20])
+
+
+def test_library_code_never_imports_the_test_helpers():
+    bad = [name for name, path in _modules() if name != "ams_torch.testing"
+           and any(t == "ams_torch.testing" or t.startswith("ams_torch.testing.") for t in _imports(name, path))]
+    assert not bad, f"library modules importing ams_torch.testing: {bad}"

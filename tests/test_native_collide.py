@@ -1,6 +1,6 @@
 """Fused native collision stage (SPEC §8, §15): torch definition vs native CPU (vs CUDA).
 
-The torch definition is ``ams_torch.sim.step.collisions`` (the contact response of every collider
+The torch definition is ``ams_torch.sim.stepping.collisions`` (the contact response of every collider
 in order, then follow-the-leader and push-out rounds); the native kernel is
 ``ams_torch/native/csrc/collide``, built once per session. Tolerance: float64 1e-10 relative
 (measured: ~1e-16). The kernel computes σ, the normals and the response with the torch code's
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import built_native
+from conftest import built_native, rel
 
 import ams_torch
 from ams_torch import testing
@@ -30,7 +30,7 @@ from ams_torch.geometry.sdf import SDFGrid
 from ams_torch.sim import native
 from ams_torch.sim.dynamics import frame_dynamics
 from ams_torch.sim.model import coefficients
-from ams_torch.sim.step import collisions
+from ams_torch.sim.stepping import collisions
 from ams_torch.native import build as _native
 from ams_torch.stages.collide import (
     CapsuleCollider,
@@ -44,12 +44,6 @@ from ams_torch.stages.collide import (
 REPO = Path(__file__).resolve().parents[1]
 F64, F32 = torch.float64, torch.float32
 EPS32 = torch.finfo(F32).eps
-
-
-@pytest.fixture(scope="session")
-def native_cpu():
-    """The native CPU collision namespace, built (or loaded from the cache) once per session."""
-    return built_native("collide_cpu")
 
 
 def _ball_grid(center, radius, lower, upper, resolution=20):
@@ -116,11 +110,6 @@ def contact_share(sim, x, world) -> float:
     return inside.double().mean().item()
 
 
-def rel(a, b) -> float:
-    a, b = a.double(), b.double()
-    return ((a - b).norm() / b.norm()).item()
-
-
 # ---------------------------------------------------------------------------------------
 # each collider alone and all together
 # ---------------------------------------------------------------------------------------
@@ -129,30 +118,30 @@ KINDS = ["sphere", "capsule", "plane", "hollow", "hollow_closed", "mesh", "all"]
 
 
 @pytest.mark.parametrize("kind", KINDS)
-def test_each_collider_float64(native_cpu, kind):
+def test_each_collider_float64(collide_ops, kind):
     sim, x, v, head, poses = make_case(kind)
-    (xr, vr), (xn, vn), world = run_both(native_cpu, sim, x, v, head, poses)
+    (xr, vr), (xn, vn), world = run_both(collide_ops, sim, x, v, head, poses)
     assert contact_share(sim, x, world) > 0.02, "the case has too few contacts"
     assert rel(xn, xr) <= 1e-10 and rel(vn, vr) <= 1e-10, (rel(xn, xr), rel(vn, vr))
     assert rel(xn, x) > 1e-6  # the stage did something
 
 
 @pytest.mark.parametrize("rounds,inext", [(0, True), (2, True), (1, False)])
-def test_rounds_and_inextensibility(native_cpu, rounds, inext):
+def test_rounds_and_inextensibility(collide_ops, rounds, inext):
     sim, x, v, head, poses = make_case("all", rounds=rounds, inextensibility=inext)
-    (xr, vr), (xn, vn), _ = run_both(native_cpu, sim, x, v, head, poses)
+    (xr, vr), (xn, vn), _ = run_both(collide_ops, sim, x, v, head, poses)
     assert rel(xn, xr) <= 1e-10 and rel(vn, vr) <= 1e-10
 
 
-def test_pinned_particles_untouched(native_cpu):
+def test_pinned_particles_untouched(collide_ops):
     sim, x, v, head, poses = make_case("all")
-    (_, _), (xn, vn), _ = run_both(native_cpu, sim, x, v, head, poses)
+    (_, _), (xn, vn), _ = run_both(collide_ops, sim, x, v, head, poses)
     pinned = sim.model.pinned
     assert pinned.any()
     assert torch.equal(xn[pinned], x[pinned]) and torch.equal(vn[pinned], v[pinned])
 
 
-def test_scenes_with_their_own_poses(native_cpu):
+def test_scenes_with_their_own_poses(collide_ops):
     """B > 1 scenes: per-scene head poses, a follow-head sphere, a world capsule with one pose per
     scene and a moving plane (velocities), a mesh with a shared pose."""
     sim, x, v, head, _ = make_case("all", scenes=3)
@@ -161,20 +150,20 @@ def test_scenes_with_their_own_poses(native_cpu):
                                        (0.0, 0.5, 0.2 * k), dtype=F64) for k in range(b)])
     plane_pose = Pose.from_rotvec((0.05, 0.0, 0.0), (0.0, 0.01, 0.0), (0.0, 0.3, 0.0), (0.2, 0.0, 0.0), dtype=F64)
     poses = (None, rot, plane_pose, None, None)
-    (xr, vr), (xn, vn), world = run_both(native_cpu, sim, x, v, head, poses)
+    (xr, vr), (xn, vn), world = run_both(collide_ops, sim, x, v, head, poses)
     assert world[1].rotation.shape == (3, 3, 3) and world[2].has_velocity
     assert rel(xn, xr) <= 1e-10 and rel(vn, vr) <= 1e-10
     for k in range(b):
         assert rel(xn[k], xr[k]) <= 1e-10 and rel(vn[k], vr[k]) <= 1e-10
 
 
-def test_entry_point_and_unsupported_collider(native_cpu):
+def test_entry_point_and_unsupported_collider(collide_ops):
     sim, x, v, head, _ = make_case("all")
     world = resolve_world_poses(sim.colliders, head, None)
     assert native.native_collisions_available("cpu", F64)
     assert native.native_collisions_supported(sim.model, x, v, head, world)
     xn, vn = native.native_collisions(sim.model, sim.config, x, v, head, world)
-    direct = native_cpu.collide(*native.collision_arguments(sim.model, sim.config, x, v, head, world))
+    direct = collide_ops.collide(*native.collision_arguments(sim.model, sim.config, x, v, head, world))
     assert torch.equal(xn, direct[0]) and torch.equal(vn, direct[1])
 
     class Shifted(SphereCollider):  # a subclass may compute its own distance: torch path
@@ -204,12 +193,12 @@ def test_op_default_is_the_torch_definition():
     assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
 
 
-def test_float32(native_cpu):
+def test_float32(collide_ops):
     """float32: as close to the float64 stage as the torch float32 stage is (twice, plus 8 ulps)."""
     out = {}
     for dtype in (F32, F64):
         sim, x, v, head, poses = make_case("all", dtype=dtype)
-        out[dtype] = run_both(native_cpu, sim, x, v, head, poses)[:2]
+        out[dtype] = run_both(collide_ops, sim, x, v, head, poses)[:2]
     (x64, v64), _ = out[F64]
     (xt, vt), (xn, vn) = out[F32]
     assert xn.dtype == F32
@@ -217,7 +206,7 @@ def test_float32(native_cpu):
         assert rel(nat, ref) <= 2 * rel(tor, ref) + 8 * EPS32, (rel(nat, ref), rel(tor, ref))
 
 
-def test_sixty_frames_in_contact(native_cpu):
+def test_sixty_frames_in_contact(collide_ops):
     """60 frames of a shaken groom resting on a head sphere and cut by a plane and a capsule,
     float64: torch frame + torch collisions against native frame + native collisions, each fed its
     own output. Strands are in contact on every frame; report the max difference."""
@@ -245,7 +234,7 @@ def test_sixty_frames_in_contact(native_cpu):
                 x, v = collisions(sim.model, sim.config, x, v, p1, ())
             else:
                 x, v = frame_ns.frame(*native.op_arguments(*a[:10], None), -1)
-                x, v = native_cpu.collide(*native.collision_arguments(sim.model, sim.config, x, v, p1, world))
+                x, v = collide_ops.collide(*native.collision_arguments(sim.model, sim.config, x, v, p1, world))
             paths[name] = (x, v)
         worst = max(worst, (paths["native"][0] - paths["torch"][0]).abs().max().item())
     print(f"60 frames in contact: max |x_native - x_torch| = {worst:.3g} m; contact share "
@@ -254,7 +243,7 @@ def test_sixty_frames_in_contact(native_cpu):
     assert worst <= 1e-10
 
 
-def test_opcheck_and_compile(native_cpu):
+def test_opcheck_and_compile(collide_ops):
     for dtype in (F64, F32):
         sim, x, v, head, _ = make_case("all", dtype=dtype, scenes=2, strands=5, particles=6)
         world = resolve_world_poses(sim.colliders, head, None)
@@ -276,7 +265,7 @@ def test_opcheck_and_compile(native_cpu):
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 @pytest.mark.parametrize("dtype", [F64, F32])
-def test_cuda_matches_cpu(native_cpu, dtype):
+def test_cuda_matches_cpu(collide_ops, dtype):
     ns = _native.native_ops("collide_cuda")
     if ns is None:
         reason = _native.native_status()["collide_cuda"]["reason"]
@@ -285,7 +274,7 @@ def test_cuda_matches_cpu(native_cpu, dtype):
         raise AssertionError(reason)
     sim, x, v, head, _ = make_case("all", dtype=dtype, scenes=2, strands=37)
     world = resolve_world_poses(sim.colliders, head, None)
-    cpu = native_cpu.collide(*native.collision_arguments(sim.model, sim.config, x, v, head, world))
+    cpu = collide_ops.collide(*native.collision_arguments(sim.model, sim.config, x, v, head, world))
     sim_c = sim.to("cuda")
     head_c = head.to(device="cuda")
     world_c = resolve_world_poses(sim_c.colliders, head_c, None)

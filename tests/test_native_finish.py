@@ -12,9 +12,10 @@ from ams_torch.geometry.pose import Pose
 from ams_torch.sim import finish
 from ams_torch.sim.op_support import pose_tensors
 from ams_torch.sim.state import Control
-from ams_torch.sim.step import SimulationDiverged, check_state, step
+from ams_torch.sim.stepping import SimulationDiverged, check_state, step
 from ams_torch.stages.collide import SphereCollider
-from test_native_frame import DEVICES, F32, F64, _native_ns, frame_args, make_scene, native_cpu, rel  # noqa: F401
+from conftest import DEVICES, rel
+from test_native_frame import F32, F64, _native_ns, frame_args, make_scene
 
 EPS64 = torch.finfo(F64).eps
 
@@ -40,7 +41,7 @@ def _case(device="cpu", dtype=F64, batch=(), pose_batch=None, strands=6, particl
 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("batch,pose_batch", [((), None), ((3,), None), ((3,), ()), ((2, 2), None)])
-def test_native_equals_definition_float64(native_cpu, device, batch, pose_batch):
+def test_native_equals_definition_float64(frame_ops, device, batch, pose_batch):
     _native_ns(device)  # the kernels of this device are built (else the op would take the definition)
     model, x, v, pose = _case(device, F64, batch, pose_batch)
     want_v, want_s = finish.pin_and_speed(x, v, model.pinned, pose)
@@ -58,7 +59,7 @@ def test_native_equals_definition_float64(native_cpu, device, batch, pose_batch)
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_native_equals_definition_float32(native_cpu, device):
+def test_native_equals_definition_float32(frame_ops, device):
     """float32: the head's rigid velocity is a few products and sums of O(1) terms, so each
     component is within a few ulps of the norm of the terms (bound 8 eps · scale)."""
     _native_ns(device)
@@ -72,7 +73,7 @@ def test_native_equals_definition_float32(native_cpu, device):
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf])
-def test_nonfinite_particles_give_nonfinite_speed(native_cpu, bad):
+def test_nonfinite_particles_give_nonfinite_speed(frame_ops, bad):
     model, x, v, pose = _case()
     free = (~model.pinned).nonzero()[0]
     v[free[0], free[1], 1] = bad
@@ -84,7 +85,7 @@ def test_nonfinite_particles_give_nonfinite_speed(native_cpu, bad):
     assert torch.isfinite(speed[others]).all()
 
 
-def test_opcheck(native_cpu):
+def test_opcheck(frame_ops):
     for dtype, batch, pose_batch in ((F64, (2,), None), (F32, (), None), (F64, (3,), ())):
         model, x, v, pose = _case("cpu", dtype, batch, pose_batch)
         (_, t, lin, ang), _ = pose_tensors(pose, x)
@@ -99,7 +100,7 @@ def test_op_default_is_the_definition():
     assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
 
 
-def test_gradients_stay_on_the_definition(native_cpu):
+def test_gradients_stay_on_the_definition(frame_ops):
     model, x, v, pose = _case()
     v = v.requires_grad_()
     out, speed = finish.native_finish(model, x, v, pose)
@@ -118,7 +119,7 @@ def _shaken(backend, dtype=F64):
     return sim, shake_poses(12, 1 / 60, amplitude=0.6, frequency=1.5, dtype=dtype)
 
 
-def test_simulator_frames_native_equal_torch(native_cpu):
+def test_simulator_frames_native_equal_torch(frame_ops):
     """Whole frames (dynamics + the frame's end) through both paths, float64: the finish adds no
     difference beyond the frame kernel's rounding."""
     out = {}
@@ -133,7 +134,7 @@ def test_simulator_frames_native_equal_torch(native_cpu):
     assert int(a.diverged_frame) == -1 == int(b.diverged_frame)
 
 
-def test_divergence_flag_through_the_native_finish(native_cpu):
+def test_divergence_flag_through_the_native_finish(frame_ops):
     """A particle made NaN in the state sets the flag on the next frame on the native path, and the
     guard names the input as bad, as on the torch path."""
     for backend in ("native", "torch"):
@@ -151,7 +152,7 @@ def test_divergence_flag_through_the_native_finish(native_cpu):
 
 
 @pytest.mark.parametrize("scenes,dtype", [(None, F64), (2, F64), (2, F32)])
-def test_frame_with_its_end_fused(native_cpu, scenes, dtype):
+def test_frame_with_its_end_fused(frame_ops, scenes, dtype):
     """``native_frame_dynamics(..., finish=pose)`` (the frame's end fused into the frame kernel,
     what a dynamics-only step runs) equals the torch frame followed by ``pin_and_speed``; float64
     to rounding, float32 within its conditioning (the frame's own float32 bound)."""
@@ -171,7 +172,7 @@ def test_frame_with_its_end_fused(native_cpu, scenes, dtype):
     assert (v[..., sim.model.pinned, :] - head[..., sim.model.pinned, :]).abs().max() <= 1e3 * torch.finfo(dtype).eps
 
 
-def test_dynamics_only_step_dispatches_one_op_for_dynamics_and_end(native_cpu):
+def test_dynamics_only_step_dispatches_one_op_for_dynamics_and_end(frame_ops):
     """A dynamics-only native frame runs the fused frame op and no separate finish op; a frame
     with collisions keeps the finish op after them."""
     from torch.profiler import ProfilerActivity, profile

@@ -2,7 +2,7 @@
 the sparse torch path vs native CPU vs CUDA, per stage and for the whole stage; the capacity and
 its overflow flag; edge cases; op registration; backend selection and fallback.
 
-The native CPU kernels are built once per session (``native`` fixture; cached across runs in
+The native CPU kernels are built once per session (``grid_ops`` fixture in conftest; cached across runs in
 ``~/.cache/ams_torch`` or ``$AMS_TORCH_CACHE``); CUDA cases run only where a GPU is visible.
 
 Tolerances (max |native − torch| / max |torch| per quantity):
@@ -29,23 +29,21 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import built_native
+from conftest import DEVICES, built_native
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from ams_torch.geometry.pose import Pose
 from ams_torch.native import build as _native
 from ams_torch.stages.hair_hair import HairHair, hair_hair_stage
 from ams_torch.stages.hair_hair.native import g2p_op, p2g_op, pressure_op
+from ams_torch.testing import head_groom, two_wisps
 from ams_torch.stages.hair_hair.pressure import pressure_torch
 from ams_torch.stages.hair_hair.sparse import (active_cells, blocks_per_axis, densify, g2p_sparse, p2g_sparse,
                                               pressure_sparse)
 from ams_torch.stages.hair_hair.transfer import cell_mass, face_views, g2p_torch, p2g_torch, scene_frame
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_hair_hair import head_groom, two_wisps  # noqa: E402  (the tests' input factories)
 
 REPO = Path(__file__).resolve().parents[1]
-DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 DTYPES = [torch.float64, torch.float32]
 MASS = 1e-6
 DT = 1.0 / 60.0
@@ -54,20 +52,6 @@ F64_REL = 1e-10
 
 def f32_rel(r: int) -> float:
     return 8 * r * torch.finfo(torch.float32).eps
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_cpu_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
-@pytest.fixture(scope="session")
-def native():
-    """The native CPU grid namespace, built (or loaded from the cache) once per session."""
-    return built_native("grid_cpu")
 
 
 def _namespace(device: str):
@@ -190,7 +174,7 @@ def test_sparse_torch_path_equals_the_dense_definition(resolution):
 # -- per-stage parity ------------------------------------------------------------------------
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("dtype", DTYPES)
-def test_p2g_parity(native, device, dtype):
+def test_p2g_parity(grid_ops, device, dtype):
     ns = _namespace(device)
     s = squeeze_scene(dtype, device)
     grid = s["grid"]
@@ -216,7 +200,7 @@ def test_p2g_parity(native, device, dtype):
 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("dtype", DTYPES)
-def test_pressure_parity_dense_squeeze(native, device, dtype):
+def test_pressure_parity_dense_squeeze(grid_ops, device, dtype):
     ns = _namespace(device)
     s = squeeze_scene(dtype, device)
     grid = s["grid"]
@@ -241,7 +225,7 @@ def test_pressure_parity_dense_squeeze(native, device, dtype):
 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("dtype", DTYPES)
-def test_g2p_parity(native, device, dtype):
+def test_g2p_parity(grid_ops, device, dtype):
     ns = _namespace(device)
     s = squeeze_scene(dtype, device)
     grid = s["grid"]
@@ -265,7 +249,7 @@ def test_g2p_parity(native, device, dtype):
     assert torch.equal(v_n[:, far], s["vf"][:, far]) and torch.equal(v_t[:, far], s["vf"][:, far])
 
 
-def test_sweeps_visit_only_what_phi_can_reach_with_the_full_sweeps_values(native):
+def test_sweeps_visit_only_what_phi_can_reach_with_the_full_sweeps_values(grid_ops):
     """Two wisps far apart: one squeezed (pushing cells), one at rest (active cells that never
     push). The CPU kernel sweeps only the slots φ can reach; φ everywhere, including the resting
     wisp's active cells (0), is what sweeping every cell gives (the torch path), in float64."""
@@ -283,7 +267,7 @@ def test_sweeps_visit_only_what_phi_can_reach_with_the_full_sweeps_values(native
     faces, table, blocks, count = p2g_sparse(xf, vf, m, frame, grid.origin, h, r, grid.capacity)
     args = (grid.target_density, dt, h, r, 50, 0.6, 1.0, 0.05)
     phi_t, field_t, *_ = pressure_sparse(faces, table, blocks, count, *args)
-    phi_n, field_n, *_ = native.pressure(faces, table, blocks, count, *args, grid.active_capacity)
+    phi_n, field_n, *_ = grid_ops.pressure(faces, table, blocks, count, *args, grid.active_capacity)
     used = blocks[0] >= 0
     assert torch.equal(phi_n[0, used] > 0, phi_t[0, used] > 0)
     assert rel(phi_n[0, used], phi_t[0, used]) <= 1e-13 and rel(field_n[0, used], field_t[0, used]) <= 1e-13
@@ -302,7 +286,7 @@ def test_sweeps_visit_only_what_phi_can_reach_with_the_full_sweeps_values(native
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("detailed", [False, True])
-def test_stage_parity(native, device, dtype, detailed):
+def test_stage_parity(grid_ops, device, dtype, detailed):
     _namespace(device)
     s = squeeze_scene(dtype, device, strands=120, detailed_collisions=detailed, collision_radius=3e-3)
     grid = s["grid"]
@@ -329,7 +313,7 @@ def test_stage_parity(native, device, dtype, detailed):
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_leading_scene_dims(native, device):
+def test_leading_scene_dims(grid_ops, device):
     _namespace(device)
     s = squeeze_scene(torch.float64, device, strands=60, scenes=6)
     x, v, m = (t.reshape(2, 3, *t.shape[1:]) for t in (s["x"], s["v"], s["mass"]))
@@ -345,7 +329,7 @@ def test_leading_scene_dims(native, device):
 # -- capacity --------------------------------------------------------------------------------
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("backend", ["torch", "native"])
-def test_capacity_overflow_is_flagged_never_silent(native, device, backend):
+def test_capacity_overflow_is_flagged_never_silent(grid_ops, device, backend):
     """A pool one block short of the hair: the flag is set (on the device) and the count says how
     many blocks the hair needed; a pool that just fits gives the whole-grid result exactly."""
     _namespace(device)
@@ -371,7 +355,7 @@ def test_capacity_overflow_is_flagged_never_silent(native, device, backend):
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_active_cell_capacity(native, device):
+def test_active_cell_capacity(grid_ops, device):
     """The torch path sweeps a list of the active cells (a static capacity, so its cost is not the
     pool's): with room for exactly the active cells it gives the values of sweeping every cell;
     one short, both paths flag the overflow (the kernels count the same active cells)."""
@@ -424,7 +408,7 @@ def test_pool_follows_the_hair_not_the_box():
 # -- edge cases ------------------------------------------------------------------------------
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("dtype", DTYPES)
-def test_no_cell_above_target_gives_exactly_zero_phi(native, device, dtype):
+def test_no_cell_above_target_gives_exactly_zero_phi(grid_ops, device, dtype):
     """A groom at its rest shape (target = 1.1 × its peak density): φ is exactly 0 on both paths
     (the native kernels skip the sweeps), so the field is the PIC share alone."""
     ns = _namespace(device)
@@ -446,7 +430,7 @@ def test_no_cell_above_target_gives_exactly_zero_phi(native, device, dtype):
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_empty_grid(native, device):
+def test_empty_grid(grid_ops, device):
     """Every particle outside the grid: no block is used, and (x, v) come back unchanged."""
     ns = _namespace(device)
     s = squeeze_scene(torch.float64, device, strands=30, outside=False)
@@ -465,7 +449,7 @@ def test_empty_grid(native, device):
         assert torch.equal(x2, xf.reshape(s["x"].shape)) and torch.equal(v2, s["v"])
 
 
-def test_native_results_do_not_depend_on_the_thread_count(native):
+def test_native_results_do_not_depend_on_the_thread_count(grid_ops):
     s = squeeze_scene(torch.float32, "cpu", strands=400, resolution=32, scenes=1)
     grid = s["grid"]
     args = (s["xf"], s["vf"], s["m"], s["frame"], grid.origin, grid.cell_size, grid.resolution, grid.capacity)
@@ -474,9 +458,9 @@ def test_native_results_do_not_depend_on_the_thread_count(native):
         outs = []
         for threads in (1, 2, 1):
             torch.set_num_threads(threads)
-            faces, table, blocks, count = native.p2g(*args)
+            faces, table, blocks, count = grid_ops.p2g(*args)
             used = int(count[0])
-            phi, field, _ = native.pressure(faces, table, blocks, count, grid.target_density, s["dt"], grid.cell_size,
+            phi, field, _ = grid_ops.pressure(faces, table, blocks, count, grid.target_density, s["dt"], grid.cell_size,
                                             grid.resolution, *_solve_args(grid), grid.active_capacity)
             outs.append((faces[:, :used], table, phi[:, :used], field[:, :used]))
     finally:
@@ -488,7 +472,7 @@ def test_native_results_do_not_depend_on_the_thread_count(native):
 
 # -- registration ----------------------------------------------------------------------------
 @pytest.mark.parametrize("device", DEVICES)
-def test_opcheck(native, device):
+def test_opcheck(grid_ops, device):
     """The three ops against their fakes and schemas. The capacity is the blocks the scene uses
     (slots beyond them are unspecified: the kernels leave them unwritten)."""
     _namespace(device)
@@ -517,7 +501,7 @@ class _Record(TorchDispatchMode):
         return func(*args, **(kwargs or {}))
 
 
-def test_backend_selection(native):
+def test_backend_selection(grid_ops):
     s = squeeze_scene(torch.float64, "cpu", strands=20, resolution=8)
     call = lambda x, v, backend, grid=s["grid"]: hair_hair_stage(grid, x, v, s["mass"], s["pose"], DT,  # noqa: E731
                                                                  s["free"], backend=backend)
@@ -583,7 +567,7 @@ def test_disabled_native_falls_back_to_torch(tmp_path):
 
 
 @pytest.mark.slow
-def test_issue_case_at_128_equals_the_dense_definition(native):
+def test_issue_case_at_128_equals_the_dense_definition(grid_ops):
     """The issue's 160 × 12 groom at R = 128 (float64, squeezed, moving head): the sparse torch
     path and the native kernels give the dense definition's velocities."""
     s = squeeze_scene(torch.float64, "cpu", strands=160, particles=12, resolution=128, scenes=1, outside=False)

@@ -19,6 +19,8 @@ from pathlib import Path
 import pytest
 import torch
 
+from conftest import DEVICES
+
 from ams_torch.native import build as _native
 from ams_torch.solver import op as ops
 from ams_torch.solver.reference import banded_matvec, banded_to_dense, solve_banded_dense, solve_banded_plain
@@ -26,7 +28,6 @@ from ams_torch.solver.reference import banded_matvec, banded_to_dense, solve_ban
 REPO = Path(__file__).resolve().parents[1]
 CSRC = REPO / "ams_torch" / "native" / "csrc" / "banded"
 CSRC_ROOT = CSRC.parent
-DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 H = 1.0 / 60.0  # time step of the assembled systems, s
 
 

@@ -22,7 +22,7 @@ from hypothesis import strategies as st
 from ams_torch.apps.cli import main
 
 from test_parsing_property import _mutate, sampler, toml_value
-from test_reliability_outputs import run_cli
+from conftest import run_cli
 
 SLOW = os.environ.get("HYPOTHESIS_PROFILE") == "slow"
 PROFILE = dict(max_examples=150 if SLOW else 6, deadline=None, derandomize=not SLOW,

@@ -8,7 +8,7 @@ import pytest
 
 from ams_torch.apps.cli import main
 from ams_torch.apps.recipe import RecipeError, parse_recipe
-from ams_torch.apps.recipe.checks import check_recipe_memory
+from ams_torch.apps.recipe.core import check_recipe_memory
 from ams_torch.apps.scene import SceneError, parse_scene
 from ams_torch.apps.scene import limits
 from ams_torch.apps.scene.limits import MemoryLimitError, check_memory, estimate_memory, parse_size

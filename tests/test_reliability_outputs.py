@@ -2,11 +2,9 @@
 disks (a file size limit, ``ulimit -f``, in a child process; a fake ffmpeg that exits 0 after an
 error), kills at chosen points (SIGKILL from inside a child) and failures part-way."""
 import os
-import resource
 import signal
 import stat
 import subprocess
-import sys
 import textwrap
 from pathlib import Path
 
@@ -14,6 +12,7 @@ import h5py
 import imageio.v3 as iio
 import numpy as np
 import pytest
+from conftest import one_error, run_cli
 
 from ams_torch.apps.atomic import WriteError, h5_file, remove_stale, temp_name
 from ams_torch.apps.cli import main
@@ -21,7 +20,6 @@ from ams_torch.apps.sequence import partial_name, write_sequence
 from ams_torch.apps.video import mp4_frame_count, write_png, write_video
 from ams_torch.sim.params import Params
 
-ROOT = Path(__file__).resolve().parents[1]
 
 TINY = """
 name = "tiny"
@@ -39,29 +37,6 @@ type = "shake"
 [render]
 size = 2.0
 """
-
-
-def run_cli(args, fsize=None, timeout=180, script=None):
-    """``python -m ams_torch ARGS`` (or ``python -c SCRIPT``) in a child process, with a file size
-    limit of ``fsize`` bytes (``ulimit -f``; Python ignores SIGXFSZ, so writes fail with EFBIG)."""
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-
-    def limit():
-        resource.setrlimit(resource.RLIMIT_FSIZE, (fsize, fsize))
-
-    cmd = [sys.executable, "-c", script] if script else [sys.executable, "-m", "ams_torch", *map(str, args)]
-    return subprocess.run(cmd, preexec_fn=limit if fsize else None, capture_output=True, text=True, env=env,
-                          timeout=timeout, cwd=str(ROOT))
-
-
-def one_error(p) -> str:
-    """The child failed cleanly: exit 2, no signal, no traceback, one ``error:`` line on stderr."""
-    lines = [line for line in p.stderr.splitlines() if line.strip()]
-    assert p.returncode == 2, (p.returncode, p.stderr[-3000:])
-    assert "Traceback" not in p.stderr and "Exception ignored" not in p.stderr, p.stderr[-3000:]
-    errors = [line for line in lines if line.startswith("error:")]
-    assert len(errors) == 1, lines[-10:]
-    return errors[0]
 
 
 def leftovers(folder) -> list:

@@ -93,10 +93,10 @@ def test_cuda_graph_capture_and_replay_equals_eager(small_head):
             sim.step(static_state, static_pose)
     torch.cuda.current_stream().wait_stream(side)
     graph = torch.cuda.CUDAGraph()
-    check_every, sim.params.check_every = sim.params.check_every, 0
+    check_every, sim.check_every = sim.check_every, 0
     with torch.cuda.graph(graph):
         out = sim.step(static_state, static_pose)
-    sim.params.check_every = check_every
+    sim.check_every = check_every
     state = s0
     for pose in poses:  # copy the inputs into the captured buffers, replay, read the outputs
         torch.utils._pytree.tree_map(lambda dst, src: dst.copy_(src) if isinstance(dst, torch.Tensor) else None,

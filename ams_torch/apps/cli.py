@@ -296,7 +296,7 @@ def _generate_shards(args, recipe) -> tuple:
 def _cmd_generate(args) -> int:
     from ams_torch.apps.datagen import generate, generate_ray
     from ams_torch.apps.recipe import load_recipe
-    from ams_torch.apps.recipe.checks import check_recipe_memory
+    from ams_torch.apps.recipe.core import check_recipe_memory
 
     for name in ("sequences", "threads"):
         _positive(f"--{name}", getattr(args, name))

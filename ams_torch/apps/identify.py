@@ -1,7 +1,7 @@
 """Parameter identification through whole rollouts: fit material fields to captured motion.
 
 A captured motion is the positions of a groom at fixed material points (rest arc-length
-fractions, :func:`ams_torch.testing.at_material_points`) after every frame. A simulator whose
+fractions, :func:`at_material_points`) after every frame. A simulator whose
 material fields are ``nn.Parameter`` s (``Simulator(..., learnable=...)``) is fitted to it by
 gradient descent on the mean squared distance at those points over every frame; the gradient
 comes back through every frame (the step, the sag-free initial state, the non-Hookean yield) of a
@@ -32,12 +32,33 @@ from torch.nn.utils import parametrize
 from ams_torch.sim.params import Params
 from ams_torch.sim.rollout import rollout
 from ams_torch.sim.simulator import Simulator
-from ams_torch.testing import at_material_points
 
-__all__ = ["Log", "Fraction", "fit_simulator", "unconstrained", "values", "set_values", "trajectory",
-           "rollout_loss", "loss_mm2", "loss_and_grad", "loss_at", "make_target", "fd_check", "fit", "POINTS"]
+__all__ = ["at_material_points", "Log", "Fraction", "fit_simulator", "unconstrained", "values", "set_values",
+           "trajectory", "rollout_loss", "loss_mm2", "loss_and_grad", "loss_at", "make_target", "fd_check", "fit", "POINTS"]
 
 F64 = torch.float64
+
+
+def at_material_points(rest: torch.Tensor, x: torch.Tensor, points: int = 33) -> torch.Tensor:
+    """Positions of x at fixed material points: the rest arc-length fractions k / (points − 1).
+
+    rest: (S, N, 3) m, the rest shape that defines arc length; x: (..., S, N, 3) m, a simulated
+    state of that groom. Each material point is interpolated linearly along the simulated
+    polyline between the two particles whose rest arc lengths bracket it, so grooms of
+    different N can be compared point for point (errors in N are measured this way, not by
+    particle index). Returns (..., S, points, 3) m.
+    """
+    seg = (rest[:, 1:] - rest[:, :-1]).norm(dim=-1)
+    arc = torch.nn.functional.pad(seg.cumsum(-1), (1, 0))
+    arc = arc / arc[:, -1:]
+    u = torch.linspace(0, 1, points, dtype=rest.dtype, device=rest.device).expand(rest.shape[0], points).contiguous()
+    idx = torch.searchsorted(arc.contiguous(), u).clamp(1, rest.shape[1] - 1)  # (S, points)
+    a0, a1 = arc.gather(1, idx - 1), arc.gather(1, idx)
+    t = ((u - a0) / (a1 - a0)).clamp(0, 1)[..., None]
+    lead = x.shape[:-3]
+    gather = lambda i: torch.gather(x, -2, i[..., None].expand(lead + i.shape + (3,)))  # noqa: E731
+    x0, x1 = gather(idx - 1), gather(idx)
+    return x0 + t.to(x.dtype) * (x1 - x0)
 POINTS = 33  # material points per strand
 
 

@@ -64,15 +64,23 @@ class Static(Motion):
 
 
 class Shake(Motion):
-    """Rotation about ``axis`` by angle(t) = amplitude·sin(2π f t) (radians, Hz), exact ω."""
+    """Rotation about ``axis`` by angle(t) = amplitude·sin(2π f t) (radians, Hz), exact ω; with
+    ``translation`` (3,) m also a translation ``translation``·sin(2π f t) (exact velocity)."""
 
-    def __init__(self, amplitude: float = 0.6, frequency: float = 1.5, axis=(0.0, 1.0, 0.0)):
+    def __init__(self, amplitude: float = 0.6, frequency: float = 1.5, axis=(0.0, 1.0, 0.0),
+                 translation=(0.0, 0.0, 0.0)):
         self.amplitude, self.frequency, self.axis = float(amplitude), float(frequency), _unit(axis)
+        self.translation = np.asarray(translation, dtype=np.float64)
+        if self.translation.shape != (3,) or not np.isfinite(self.translation).all():
+            raise ValueError(f"Shake.translation must be three finite numbers (m); got {translation}")
 
     def state(self, t):
         w = 2 * math.pi * self.frequency
         z = np.zeros(3)
-        return (self.axis * self.amplitude * math.sin(w * t), z, z,
+        tr, lin = z, z
+        if self.translation.any():
+            tr, lin = self.translation * math.sin(w * t), self.translation * w * math.cos(w * t)
+        return (self.axis * self.amplitude * math.sin(w * t), tr, lin,
                 self.axis * self.amplitude * w * math.cos(w * t))
 
 

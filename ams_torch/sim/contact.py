@@ -1,5 +1,5 @@
 """The collision stage of a frame (SPEC §8) for colliders already placed in the world: the torch
-definition that :func:`ams_torch.sim.step.collisions` runs and the fused native kernel
+definition that :func:`ams_torch.sim.stepping.collisions` runs and the fused native kernel
 (:func:`ams_torch.sim.native.native_collisions`) reproduces."""
 from __future__ import annotations
 

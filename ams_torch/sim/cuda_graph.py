@@ -35,7 +35,7 @@ from typing import Callable, Optional
 import torch
 import torch.utils._pytree as pytree
 
-from ams_torch.sim.step import step as _step
+from ams_torch.sim.stepping import step as _step
 from ams_torch.sim.state import State
 
 __all__ = ["GraphedStep", "cuda_capture", "eager_capture"]
@@ -167,7 +167,7 @@ class GraphedStep:
         return _Captured(inputs, replay, output)
 
     def _check(self, out: State) -> None:
-        every = self.sim.params.check_every
+        every = self.sim.check_every
         if every:
             self._frames += 1
             if self._frames % every == 0:

@@ -15,13 +15,14 @@ tensors either way, so gradients reach the raw values.
 from __future__ import annotations
 
 import warnings
-from typing import Iterable, NamedTuple
+from typing import Iterable, NamedTuple, Sequence
 
 import numpy as np
 import torch
 
 from ams_torch.sim.material import coupled_bending, stretch_coupling_factor
 from ams_torch.sim.params import Params
+from ams_torch.stages.hair_hair import build_hair_hair
 
 __all__ = ["Model", "Coefficients", "coefficients", "check_rest_positions", "MIN_PARTICLES", "MATERIAL_FIELDS",
            "sag_free_offset", "pinned_counts"]
@@ -150,16 +151,18 @@ class Model(torch.nn.Module):
     """
 
     def __init__(self, rest_positions, params: Params, *, learnable: Iterable[str] = (), device=None,
-                 dtype: torch.dtype = torch.float32):
+                 dtype: torch.dtype = torch.float32, hair_hair=None, colliders: Sequence = ()):
         super().__init__()
         params.validate()
+        self.params = params if params.is_frozen else params.frozen()
+        self.sag_free = bool(params.sag_free)
         learnable = tuple(learnable)
         fields = MATERIAL_FIELDS[params.material]
         unknown = [f for f in learnable if f not in fields]
         if unknown:
             raise ValueError(f"learnable: {unknown} are not material fields of the {params.material} Params; "
                              f"choose from {sorted(fields)}")
-        x = check_rest_positions(rest_positions).to(device=device, dtype=dtype)
+        x = check_rest_positions(rest_positions).to(device=device, dtype=dtype, copy=True)  # never the caller's tensor
         s, n, _ = x.shape
         self.num_strands, self.num_particles = s, n
         self.material = params.material
@@ -195,7 +198,13 @@ class Model(torch.nn.Module):
             self._add_field(field, term, getattr(params, field), field in learnable)
         self._fixed_terms = [t for t, deps in _TERM_FIELDS[self.material].items()
                              if not any(d in self._raw for d in deps)]
+        self._watched_fields = tuple(f for f in fields if f not in self._raw)
+        self._geometry = tuple(n for n in self._buffers if n not in fields and n != "gravity")
         self._build_fixed_terms()
+        self.hair_hair_settings = hair_hair
+        self.hair_hair = None if hair_hair is None else build_hair_hair(
+            hair_hair, self.rest_positions, coefficients(self).mass.detach(), device=x.device, dtype=dtype)
+        self.colliders = torch.nn.ModuleList(colliders)
 
     # -- construction ----------------------------------------------------------------------
     def _term_shape(self, term: str) -> tuple:
@@ -228,8 +237,56 @@ class Model(torch.nn.Module):
         terms = _compute_terms(self, set(self._fixed_terms))
         for t in self._fixed_terms:
             self.register_buffer(f"coefficient_{t}", terms[t].contiguous(), persistent=False)
+        self._seen = self._snapshot()
+
+    def _snapshot(self) -> list:
+        """(name, tensor, in-place version) of every watched buffer, the rest geometry first."""
+        b = self._buffers
+        return [(n, b[n], b[n]._version) for n in self._geometry + self._watched_fields]
+
+    def update(self) -> "Model":
+        """Take in-place edits of the fixed fields into account (cheap: compares each field's
+        version counter; called by :func:`coefficients`, so by every eager step).
+
+        A material field edited in place or replaced (``model.drag.mul_(10)``) recomputes the
+        coefficient terms derived from it, so the next step uses it. The rest geometry
+        (``rest_positions``, rest lengths, pinned particles, …) is fixed once built: an edit raises
+        ``ValueError`` (build a new model from the new rest positions: :class:`ModelBuilder`).
+        Under ``torch.compile`` nothing is checked inside the compiled region: after editing a
+        field, call ``update()`` before the next compiled step.
+        """
+        b = self._buffers
+        for n, t, v in self._seen:
+            if b[n] is not t or t._version != v:
+                break
+        else:
+            return self  # nothing edited (the common case: one pass over the version counters)
+        changed = [n for n, t, v in self._seen if n in self._geometry and (b[n] is not t or t._version != v)]
+        if changed:
+            raise ValueError(f"Model.{', Model.'.join(changed)} changed after the model was built: the rest geometry "
+                             f"and what is derived from it (rest lengths, segment lengths, pinned particles) are "
+                             f"fixed; build a new model from the new rest positions (ModelBuilder / Simulator)")
+        self._build_fixed_terms()
+        return self
+
+    def set_pinned(self, counts) -> "Model":
+        """Pin the first ``counts[s]`` particles of strand s (an int: every strand), whatever the
+        Params chose: ``num_pinned``, ``pinned`` and ``has_pinned`` change together (the one
+        sanctioned edit of the fixed geometry; the stages' fixed data keep their rest groom)."""
+        s, n = self.num_strands, self.num_particles
+        counts = torch.as_tensor(counts, dtype=torch.int64, device=self.device).expand(s).clone()
+        if int(counts.min()) < 0 or int(counts.max()) >= n:
+            raise ValueError(f"pinned counts must be in [0, {n - 1}] (fewer than the particles per strand); got "
+                             f"{counts.tolist()}")
+        self.num_pinned = counts
+        self.pinned = torch.arange(n, device=self.device)[None, :] < counts[:, None]
+        self.has_pinned = bool(int(counts.max()) > 0)
+        self._seen = self._snapshot()
+        return self
 
     def _apply(self, fn, *args, **kwargs):
+        if hasattr(self, "_seen"):
+            self.update()  # an edited rest geometry raises here too, not silently accepted by .to()
         out = super()._apply(fn, *args, **kwargs)
         self._build_fixed_terms()  # recomputed in the new dtype from the converted fields
         return out
@@ -323,6 +380,8 @@ def coefficients(model: Model) -> Coefficients:
     capped at ``stiffness_cap`` × κ_L), κ_I = ω_I² m, κ_α = A (the angular
     rigidity: the same on every segment, since the potential ½ κ_α |e| θ² is per length already).
     """
+    if not torch.compiler.is_compiling():
+        model.update()
     fixed = model._fixed_terms
     terms = {t: getattr(model, f"coefficient_{t}") for t in fixed}
     missing = set(_TERM_FIELDS[model.material]) - set(fixed)

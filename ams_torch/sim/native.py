@@ -29,7 +29,7 @@ not supported natively (the caller keeps the torch path for it: :func:`native_fr
 assembled system instead, ``blocks`` (..., S, N, 4, 3, 3) and ``rhs`` (..., S, N, 3) as
 :func:`ams_torch.sim.assembly.assemble_system` gives them, for term-by-term parity tests.
 
-``native_collisions`` is the collision stage of :func:`ams_torch.sim.step.collisions` for colliders
+``native_collisions`` is the collision stage of :func:`ams_torch.sim.stepping.collisions` for colliders
 at given world poses, one registered op ``torch.ops.ams_torch.collisions`` (``csrc/collide``), with
 the same structure (torch default, CPU/CUDA kernels, fake); see the second half of this module.
 """
@@ -350,7 +350,7 @@ def native_frame_assembly(model: Model, coeffs: Coefficients, config: Config, x:
 # ==============================================================================================
 #
 # ``native_collisions(model, config, x, v, head_pose, world_poses)`` is the collision stage of
-# :func:`ams_torch.sim.step.collisions` for colliders already placed in the world
+# :func:`ams_torch.sim.stepping.collisions` for colliders already placed in the world
 # (:func:`~ams_torch.stages.collide.resolve_world_poses`): the contact response of every collider
 # in order, then ``config.collision_rounds`` rounds of follow-the-leader and push-out, fused per
 # strand (``csrc/collide``; the follow-the-leader routine is the fused frame's). Colliders of

@@ -151,7 +151,7 @@ class Params:
         inextensibility: apply follow-the-leader length projection after the substeps.
         collision_inextensibility: with colliders (and ``inextensibility``), this many rounds
             of edge-length restore (follow-the-leader) + push-out after the collision response,
-            so contact does not leave stretched edges (see ``sim.step.collisions``); 0 = none.
+            so contact does not leave stretched edges (see ``ams_torch.sim.stepping.collisions``); 0 = none.
         contact: when the hair–solid contact response runs (SPEC §8): ``"substep"`` (the default:
             also after each substep's position update, with Δt' and the colliders at that
             substep's pose, before the frame's own collision stage) or ``"frame"`` (the SPEC's
@@ -210,6 +210,26 @@ class Params:
 
     def __post_init__(self) -> None:
         self.validate()
+
+    def __setattr__(self, name, value) -> None:
+        if self.__dict__.get("_frozen", False):
+            raise AttributeError(f"Params.{name}: these Params belong to a built model and are frozen (the model's "
+                                 f"coefficients and the step's Config were made from them); make new Params with "
+                                 f"params.replace({name}=...) and build a new Simulator / ModelBuilder")
+        super().__setattr__(name, value)
+
+    def frozen(self) -> "Params":
+        """A validated copy that refuses every later assignment (``AttributeError``): the Params a
+        built :class:`~ams_torch.sim.model.Model` keeps. ``replace`` still makes new, unfrozen Params.
+        Tensor fields are shared, not copied (a grad-carrying value keeps its graph)."""
+        out = replace(self)
+        object.__setattr__(out, "_frozen", True)
+        return out
+
+    @property
+    def is_frozen(self) -> bool:
+        """Whether these Params belong to a built model (see :meth:`frozen`)."""
+        return self.__dict__.get("_frozen", False)
 
     # -- validation --------------------------------------------------------------------
     def validate(self) -> "Params":

@@ -33,7 +33,7 @@ import torch.utils._pytree as pytree
 
 from ams_torch.geometry.pose import Pose
 from ams_torch.sim.state import Control, State
-from ams_torch.sim.step import step as _step
+from ams_torch.sim.stepping import step as _step
 
 __all__ = ["rollout", "Rollout", "frame_controls"]
 

@@ -1,27 +1,23 @@
-"""The user-facing simulator: a thin ``torch.nn.Module`` over the pure :func:`~ams_torch.sim.step.step`."""
+"""The user-facing simulator: a thin ``torch.nn.Module`` over the pure :func:`~ams_torch.sim.stepping.step`."""
 from __future__ import annotations
 
-import copy
 from typing import Mapping, Optional, Sequence, Union
 
 import torch
 
 from ams_torch.geometry.pose import Pose
-from ams_torch.sim import step as step_mod
-from ams_torch.sim.model import Model, coefficients, sag_free_offset, warn_if_no_sag_offset
+from ams_torch.sim import stepping as step_mod
 from ams_torch.sim.backends import resolve_backend
-from ams_torch.sim.params import ANGULAR_FIELD, INTEGRITY_FIELD, Params
-from ams_torch.sim.state import Config, Control, ExternalForce, State
-from ams_torch.stages.collide import Collider, MeshCollider
-from ams_torch.stages.hair_hair import HairHair, build_hair_hair
+from ams_torch.sim.builder import ModelBuilder, make_config
+from ams_torch.sim.model import coefficients, sag_free_offset
+from ams_torch.sim.params import Params
+from ams_torch.sim.state import Control, ExternalForce, State
+from ams_torch.stages.collide import Collider
+from ams_torch.stages.hair_hair import HairHair
 
 __all__ = ["Simulator"]
 
 BACKENDS = ("auto", "torch", "native")
-
-
-def _is_zero(v) -> bool:
-    return not isinstance(v, torch.Tensor) and float(v) == 0.0
 
 
 DTYPES = (torch.float32, torch.float64)
@@ -89,8 +85,9 @@ class Simulator(torch.nn.Module):
         colliders: colliders for the hair–solid stage (SPEC §8), e.g. ``MeshCollider``,
             ``SphereCollider``; an empty list or None builds no SDF and runs no collision code.
             The simulator keeps its own copies, converted to its device and dtype.
-        learnable: names of Params material fields (e.g. ``("integrity_stiffness", "drag")``)
-            to make ``nn.Parameter`` s of the module, for ``torch.optim.Adam(sim.parameters())``.
+        learnable: names of Params material fields to make ``nn.Parameter`` s of the module, for
+            ``torch.optim.Adam(sim.parameters())``: e.g. ``("integrity_rate", "drag")`` with the
+            default per-length material, ``("integrity_stiffness", "drag")`` with a per-particle one.
         backend: "torch" (the differentiable definition), "native" (the fused kernels, see
             :mod:`ams_torch.sim.native`; an error naming the kernels that cannot be built) or "auto"
             (the default: native when they can be built, torch otherwise, one warning per backend
@@ -99,50 +96,54 @@ class Simulator(torch.nn.Module):
             with its native adjoint (:mod:`ams_torch.sim.native_grad`) and its other stages on the
             torch definition (``ams_torch.native_status()["gradients"]``); gradients equal the torch
             definition's.
+        stages: the frame's stages, in order (default :data:`ams_torch.sim.stepping.STAGES`; swap or
+            wrap one with :func:`~ams_torch.sim.stepping.replace_stage` / ``wrap_stage``).
 
     The fixed data is ``sim.model`` (a registered submodule: ``.to()``, ``.double()``,
     ``state_dict()`` work), the frozen settings ``sim.config``; ``sim.step`` builds a
     :class:`~ams_torch.sim.state.Control` and calls the pure step.
 
-    Usage::
+    Example (run by ``tests/test_doctests.py``):
 
-        sim = Simulator(rest, Params(), device="cuda")
-        state = sim.initial_state()
-        for pose in poses:
-            state = sim.step(state, pose)      # state.x, state.v: (S, N, 3)
+        >>> import ams_torch as at
+        >>> from ams_torch.apps.motion import Shake
+        >>> from ams_torch.grooms.simple import sphere_groom
+        >>> rest = sphere_groom(8, 12)                            # (S, N, 3) m
+        >>> sim = at.Simulator(rest, at.Params(), learnable=("integrity_rate", "drag"), backend="torch")
+        >>> state = sim.initial_state()
+        >>> for pose in Shake().poses(3, sim.params.dt):
+        ...     state = sim.step(state, pose)
+        >>> state.x.shape                                        # state.x, state.v: (S, N, 3)
+        torch.Size([8, 12, 3])
+        >>> sorted(name for name, _ in sim.named_parameters())
+        ['model.drag', 'model.integrity_rate']
     """
 
     def __init__(self, rest_positions, params: Optional[Params] = None, *, device=None,
                  dtype: torch.dtype = torch.float32, pose: Optional[Pose] = None,
                  hair_hair: Optional[HairHair] = None, colliders: Optional[Sequence[Collider]] = None,
-                 learnable: Sequence[str] = (), backend: str = "auto"):
+                 learnable: Sequence[str] = (), backend: str = "auto", stages: Optional[Sequence] = None):
         super().__init__()
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}; got {backend!r}")
         params = params if params is not None else Params()
         if not isinstance(params, Params):
             raise ValueError(f"params must be an ams_torch.Params; got {type(params).__name__}")
-        self.params = params
         device = _check_device_dtype(device, dtype)
         params.check_dtype(dtype)
-        self.model = Model(rest_positions, params, learnable=learnable, device=device, dtype=dtype)
-        warn_if_no_sag_offset(params)
-        mass = coefficients(self.model).mass.detach()
-        self.model.hair_hair = build_hair_hair(hair_hair, self.model.rest_positions, mass, device=device, dtype=dtype)
-        cols = []
+        builder = ModelBuilder(rest_positions, params, device=device, dtype=dtype).set_learnable(*learnable)
+        builder.set_hair_hair(hair_hair)
         for c in colliders or ():
-            if not isinstance(c, Collider):
-                raise ValueError(f"colliders must be ams_torch collider objects; got {type(c).__name__}")
-            c = copy.deepcopy(c).to(device=device, dtype=dtype)
-            if isinstance(c, MeshCollider):
-                c.build()  # the SDF now, not inside the first frame
-            cols.append(c)
-        self.model.colliders = torch.nn.ModuleList(cols)
-        self.hair_hair = hair_hair
+            builder.add_collider(c)
+        self.model = builder.finalize()
         self.requested_backend = backend
-        self.config = self._make_config(params, tuple(learnable), hair_hair is not None, cols,
-                                        self._resolve_backend(backend, device, dtype, hair_hair is not None,
-                                                              bool(cols)))
+        self.config = make_config(self.model, self._resolve_backend(backend, device, dtype, hair_hair is not None,
+                                                                    bool(self.model.colliders)))
+        #: run the divergence guard every this many frames (0: never); from ``params.check_every``
+        #: (a policy of the run, not physics: it may be changed on a built simulator)
+        self.check_every = int(params.check_every)
+        #: the frame's stages (:data:`ams_torch.sim.stepping.STAGES` unless given)
+        self.stages = tuple(step_mod.STAGES if stages is None else stages)
         init = (pose or Pose.identity(dtype=dtype)).to(device=device, dtype=dtype)
         if init.rotation.shape != (3, 3):
             raise ValueError(f"pose (the head pose at t = 0) must be a single pose; got rotation "
@@ -163,22 +164,18 @@ class Simulator(torch.nn.Module):
         backend that cannot be (:func:`ams_torch.sim.backends.resolve_backend`)."""
         return resolve_backend(backend, device, dtype, hair_hair, colliders)
 
-    @staticmethod
-    def _make_config(params: Params, learnable: tuple, hair_hair: bool, cols: list, backend: str) -> Config:
-        """Static choices: terms that are exactly zero (and not learnable) are not computed."""
-        off = lambda name: _is_zero(getattr(params, name)) and name not in learnable  # noqa: E731
-        integrity = "none" if off(INTEGRITY_FIELD[params.material]) else params.integrity_model
-        return Config(dt=float(params.dt), substeps=int(params.substeps), integrity_model=integrity,
-                      angular=not off(ANGULAR_FIELD[params.material]), angular_reaction=params.angular_reaction,
-                      implicit_angular=params.implicit_angular, geometric_stiffness=params.geometric_stiffness,
-                      inextensibility=params.inextensibility, ftl_damping=float(params.ftl_damping),
-                      collision_rounds=int(params.collision_inextensibility), contact=params.contact,
-                      projection_iterations=tuple(int(c.projection_iterations) for c in cols),
-                      follow_head=tuple(bool(c.follow_head) for c in cols), hair_hair=hair_hair,
-                      max_relative_speed=float(params.max_relative_speed),
-                      backend=backend)
-
     # -- properties ------------------------------------------------------------------------
+    @property
+    def params(self) -> Params:
+        """The model's Params (frozen: they made the model and the config; ``params.replace(...)``
+        and a new simulator change them)."""
+        return self.model.params
+
+    @property
+    def hair_hair(self) -> Optional[HairHair]:
+        """The hair–hair settings the model was built with (None: the stage is off)."""
+        return self.model.hair_hair_settings
+
     @property
     def device(self) -> torch.device:
         return self.model.rest_positions.device
@@ -225,7 +222,7 @@ class Simulator(torch.nn.Module):
         rest = m.rest_positions.expand(batch + m.rest_positions.shape)
         x = pose.to_world(rest)
         v = pose.velocity_at(x)
-        if self.params.sag_free:
+        if m.sag_free:
             c = coefficients(m)
             offset = pose.unrotate(sag_free_offset(c.mass, m.gravity, c.integrity).expand_as(rest))
         else:
@@ -325,24 +322,24 @@ class Simulator(torch.nn.Module):
                 ``colliders``, or ``{index: Pose}``; None entries keep a collider's own pose):
                 world poses, or relative to the head for colliders with ``follow_head=True``.
             external_force: (..., S, N, 3) newtons, or ``f(x, v, t) -> force`` (t: 0-d tensor, s).
-            timer: optional per-stage context-manager factory (see :func:`ams_torch.sim.step.step`).
+            timer: optional per-stage context-manager factory (see :func:`ams_torch.sim.stepping.step`).
         Returns:
             the new :class:`State` (``.x``, ``.v``: (..., S, N, 3)).
         Raises:
             ValueError: an input of the wrong type, shape, dtype or device (named).
             SimulationDiverged: the divergence guard (every ``params.check_every`` frames) found
                 non-finite or exploding particles (names the frame and strands), or (its subclass
-                :class:`~ams_torch.sim.step.GridOverflow`) the hair occupied more blocks than the
+                :class:`~ams_torch.sim.stepping.GridOverflow`) the hair occupied more blocks than the
                 hair–hair grid holds.
         """
         control = self.control(state, pose, collider_poses=collider_poses, external_force=external_force)
-        new = step_mod.step(self.model, state, control, self.config, timer)
+        new = step_mod.step(self.model, state, control, self.config, timer, self.stages)
         force = control.external_force
         if isinstance(force, _CheckedForce) and force.nonfinite is not None:  # a callable's NaN: the input's fault
             first = (state.diverged_frame < 0) & (new.diverged_frame >= 0)
             new = new.replace(diverged_input=torch.where(first, new.diverged_input | force.nonfinite,
                                                          new.diverged_input))
-        every = self.params.check_every
+        every = self.check_every
         if every and not torch.compiler.is_compiling():  # compiled: call sim.check(state) yourself
             self._frames += 1
             if self._frames % every == 0:
@@ -351,8 +348,8 @@ class Simulator(torch.nn.Module):
 
     def check(self, state: State) -> None:
         """Read the state's divergence and grid-overflow flags (one host sync) and raise
-        :class:`~ams_torch.sim.step.SimulationDiverged` naming the first bad frame and strands if it
-        is set (:class:`~ams_torch.sim.step.GridOverflow` for the grid). ``step`` calls it every
+        :class:`~ams_torch.sim.stepping.SimulationDiverged` naming the first bad frame and strands if it
+        is set (:class:`~ams_torch.sim.stepping.GridOverflow` for the grid). ``step`` calls it every
         ``params.check_every`` frames, except under ``torch.compile``, where the caller decides when
         to check (the flags keep the first bad frame meanwhile)."""
         step_mod.check_state(state, self.config, self.model.hair_hair)

@@ -4,7 +4,7 @@ and the frozen settings of the step (:class:`Config`).
 One owner per datum (STYLE.md): the fixed per-groom tensors live in
 :class:`~ams_torch.sim.model.Model`; everything that differs between scenes of one groom or
 between frames lives here. State and Control are frozen dataclasses of tensors (registered as
-pytrees), so :func:`ams_torch.sim.step.step` is a pure function that ``torch.compile`` and CUDA
+pytrees), so :func:`ams_torch.sim.stepping.step` is a pure function that ``torch.compile`` and CUDA
 graphs can capture; Config holds Python values only, and the step branches on it alone.
 """
 from __future__ import annotations
@@ -43,7 +43,7 @@ class State:
         frame: () int64, frames simulated so far.
         diverged_frame: () int64, the first frame at which the divergence guard saw a non-finite or
             exploding particle, −1 while none did. Set inside the step without a host sync; the
-            simulator reads it every ``check_every`` frames (:func:`ams_torch.sim.step.check_state`).
+            simulator reads it every ``check_every`` frames (:func:`ams_torch.sim.stepping.check_state`).
         diverged_input: () bool, whether the input of that frame (state or external force) was
             already non-finite: then the cause is the data given to the simulator, not stability.
         overflow_frame: () int64, the first frame whose hair occupied more blocks than the hair–hair
@@ -120,8 +120,6 @@ class Config:
         collision_rounds: rounds of edge-length restore + push-out after the contact response.
         contact: "frame" or "substep" (``Params.contact``): whether the contact response also
             runs after every substep.
-        projection_iterations: push-out passes of each collider per call (a fixed number).
-        follow_head: per collider, whether its pose is relative to the head.
         hair_hair: the hair–hair stage runs. colliders: number of colliders (0: no collision stage).
         max_relative_speed: m/s, the divergence guard's speed limit relative to the head.
         backend: "torch" (the differentiable definition) or "native" (the fused kernels of
@@ -141,8 +139,7 @@ class Config:
     ftl_damping: float = 0.9
     collision_rounds: int = 1
     contact: str = "frame"
-    projection_iterations: Tuple[int, ...] = ()
-    follow_head: Tuple[bool, ...] = ()
+    colliders: int = 0
     hair_hair: bool = False
     max_relative_speed: float = 1.0e3
     backend: str = "torch"
@@ -151,10 +148,6 @@ class Config:
     def substep_dt(self) -> float:
         """Δt' = dt / M, seconds."""
         return self.dt / self.substeps
-
-    @property
-    def colliders(self) -> int:
-        return len(self.follow_head)
 
     @property
     def nonhookean(self) -> bool:

@@ -1,6 +1,6 @@
 """The optional stages of a frame (SPEC §6, §8) and external forces: hair–solid collisions,
 hair–hair interaction on a grid, wind. Pure functions of their inputs; the simulator composes
-them (:mod:`ams_torch.sim.step`) and builds only those a scene enables.
+them (:mod:`ams_torch.sim.stepping`) and builds only those a scene enables.
 
 Imports only :mod:`ams_torch.geometry`.
 """

@@ -72,8 +72,8 @@ Usage::
     recipe.sequence_spec(3)      # {"index": 3, "group": 1, "motion": {...}, "wind": {...} | None, ...}
     recipe.group_scene(1)        # a validated scene dict (see ams_torch.apps.scene.build)
 """
-from ams_torch.apps.recipe.checks import SPLIT_DEFAULTS, SPLITS, STORE_DEFAULTS, check_sampler_values
-from ams_torch.apps.recipe.core import Recipe, load_recipe, parse_recipe
+from ams_torch.apps.recipe.checks import SPLIT_DEFAULTS, SPLITS, STORE_DEFAULTS
+from ams_torch.apps.recipe.core import Recipe, check_sampler_values, load_recipe, parse_recipe
 from ams_torch.apps.recipe.samplers import SAMPLERS, MissingRequirement, RecipeError, is_sampler, sample
 
 __all__ = ["RecipeError", "MissingRequirement", "Recipe", "load_recipe", "parse_recipe", "SAMPLERS", "STORE_DEFAULTS",

@@ -11,13 +11,15 @@ from typing import Any, Dict, List, Optional
 
 import numpy as np
 
-from ams_torch.apps.recipe.checks import (SPLIT_DEFAULTS, SPLITS, STORE_DEFAULTS, check_sampler_values, check_top,
-                                          guide_counts, motion_common, motion_types)
-from ams_torch.apps.recipe.samplers import MissingRequirement, RecipeError, _fail, has_sampler, sample
+from ams_torch.apps.recipe.checks import (SPLIT_DEFAULTS, SPLITS, STORE_DEFAULTS, check_top, guide_counts,
+                                          motion_common, motion_types)
+from ams_torch.apps.recipe.samplers import (MissingRequirement, RecipeError, _fail, first, has_sampler, is_sampler,
+                                            key_name, options, put, sample, sites)
 from ams_torch.apps.scene import SceneError, parse_scene, read_toml
 from ams_torch.apps.scene.checks import is_number
 
-__all__ = ["Recipe", "load_recipe", "parse_recipe"]
+__all__ = ["Recipe", "load_recipe", "parse_recipe", "check_sampler_values", "sampled_scenes", "check_recipe_memory",
+           "variants"]
 
 _NOT_HASHED = ("name", "description", "sequences", "store", "split", "single_groom", "requires")
 _RANDOM_MOTION = {"keys": 4, "duration": None, "max_angle": 0.6, "max_translation": 0.05}
@@ -343,3 +345,105 @@ def parse_recipe(raw: dict, where: str = "recipe", base: str = ".") -> Recipe:
     except (TypeError, ValueError, FileNotFoundError) as err:
         _fail(where, f"sequence 0: {err}")
     return recipe
+
+
+# -- the scene of every value each sampler can produce ---------------------------------------
+def variants(recipe: Recipe) -> list:
+    """(site, label, overrides) for every value each sampler can produce; a site is one sampler
+    (its first variant is its first option), overrides replace the base draw (``kind`` and
+    ``margs`` the motion, ``g``/``p``/``w`` the groom/params/wind tables)."""
+    raw = recipe.raw
+    m = raw.get("motion", {"type": "static"})
+    types = m.get("type", "static")
+    kinds = options(types) if is_sampler(types) else [(types, "")]
+    kinds += [(k, f"[motion.{k}] table") for k in sorted(motion_types() & set(m)) if k not in [x for x, _ in kinds]]
+    out = []
+    for kind, how in kinds:
+        label = f"[motion].type = {kind!r}{f' ({how})' if how else ''}"
+        if not isinstance(kind, str) or kind not in motion_types():
+            _fail(recipe.where, f"{label}: must be one of {sorted(motion_types())}")
+        args = {**motion_common(m), **m.get(kind, {})}
+        out.append(("type", label, {"kind": kind, "margs": first(args)}))
+        for path, smp in sites(args):
+            sec = "motion" if path[0] in motion_common(m) else f"motion.{kind}"
+            out += [((kind,) + path, f"{key_name(sec, path)} = {v!r} ({d}, motion {kind})",
+                     {"kind": kind, "margs": first(put(args, path, v))}) for v, d in options(smp)]
+    wind = {k: v for k, v in raw["wind"].items() if k != "probability"} if "wind" in raw else {}
+    for section, table, arg in (("groom", raw.get("groom", {"kind": "sphere"}), "g"),
+                                ("params", raw.get("params", {}), "p"), ("wind", wind, "w"),
+                                ("colliders", raw.get("colliders", []), "c")):
+        for path, smp in sites(table):
+            out += [((section,) + path, f"{key_name(section, path)} = {v!r} ({d})", {arg: first(put(table, path, v))})
+                    for v, d in options(smp)]
+    return out
+
+
+def _base(recipe: Recipe, cases: list) -> dict:
+    """Every sampler at its first option: the draws the variants of :func:`variants` replace."""
+    raw = recipe.raw
+    kind0 = next((o["kind"] for _, _, o in cases if "kind" in o), "static")
+    return {"g": first(raw.get("groom", {"kind": "sphere"})), "p": first(raw.get("params", {})),
+            "w": first({k: v for k, v in raw["wind"].items() if k != "probability"}) if "wind" in raw else None,
+            "kind": kind0, "margs": first({**motion_common(raw.get("motion", {})), **raw.get("motion", {}).get(kind0, {})}),
+            "c": first(raw.get("colliders", []))}
+
+
+def sampled_scenes(recipe: Recipe) -> list:
+    """The validated scene of every value each sampler can produce (one sampler at a time, the
+    others at their first option, as :func:`check_sampler_values` checks them): e.g. to estimate
+    the largest run of a recipe before generating it."""
+    rng = np.random.default_rng(0)
+    cases = variants(recipe)
+    base = _base(recipe, cases)
+    out = []
+    for over in [{}] + [o for _, _, o in cases]:
+        d = {**base, **over}
+        motion = recipe._concrete_motion(d["kind"], d["margs"], rng, recipe.where)
+        out.append(recipe.make_scene(d["g"], d["p"], motion, d["w"], f"{recipe.name}/check", recipe.where,
+                                     colliders=d["c"]))
+    return out
+
+
+def check_recipe_memory(recipe: Recipe, device=None, limit: Optional[int] = None) -> int:
+    """Refuse a recipe whose largest batch group (its sampler values' largest scene, ``batch``
+    sequences simulated together) needs more memory than is available (or ``limit`` bytes):
+    :func:`ams_torch.apps.scene.limits.check_memory` naming the estimate and its keys. Returns
+    the largest estimate (bytes)."""
+    from ams_torch.apps.scene.limits import check_memory, estimate_memory
+
+    itemsize = 8 if recipe.dtype_name == "float64" else 4
+    scenes = sampled_scenes(recipe)
+    largest = max(scenes, key=lambda sc: sum(b for b, _ in estimate_memory(sc, itemsize, recipe.batch).values()))
+    return check_memory(largest, itemsize, recipe.batch, device, limit, where=recipe.where)
+
+
+def check_sampler_values(recipe: Recipe) -> None:
+    """Validate the scene of every value each sampler of the recipe can produce, one sampler at
+    a time, the others at their first option (first checked on its own: when that base is
+    invalid, the sampler whose other option repairs it is named). Raises :class:`RecipeError`
+    naming the key, the value and the problem: ``[groom].preset = 'mohak' (choice option 3 of 3): ...``."""
+    where, rng = recipe.where, np.random.default_rng(0)
+    cases = variants(recipe)
+    base = _base(recipe, cases)
+
+    def problem(over: dict) -> Optional[str]:
+        d = {**base, **over}
+        try:
+            motion = recipe._concrete_motion(d["kind"], d["margs"], rng, where)
+            recipe.make_scene(d["g"], d["p"], motion, d["w"], f"{recipe.name}/check", where, colliders=d["c"])
+        except RecipeError as err:
+            return str(err)[len(where) + 2:] if str(err).startswith(f"{where}: ") else str(err)
+        return None
+
+    first_label = {}
+    for site, label, _ in cases:
+        first_label.setdefault(site, label)
+    err = problem({})
+    if err is not None:
+        culprit = next((first_label[site] for site, _, over in cases if problem(over) is None), None) or \
+            next((label for label in first_label.values() if label.split(" = ")[0] in err), None)
+        _fail(where, f"{culprit or 'with every sampler at its first option'}: {err}")
+    for _, label, over in cases:
+        err = problem(over)
+        if err is not None:
+            _fail(where, f"{label}: {err}")

@@ -59,7 +59,7 @@ class HairHair:
             :mod:`.sparse`: storage and work follow the hair, not the R³ box). ``None`` (default):
             ``block_margin ×`` the blocks the rest groom occupies (at least 64), at most the whole
             grid. A frame whose hair occupies more blocks is flagged on the device and
-            ``Simulator.check`` raises :class:`~ams_torch.sim.step.GridOverflow`.
+            ``Simulator.check`` raises :class:`~ams_torch.sim.stepping.GridOverflow`.
         block_margin: multiplier (≥ 1) used when ``max_blocks`` or ``max_active_cells`` is None.
             Default 4.
         max_active_cells: cells per scene that can carry the pressure (all six faces massive) the

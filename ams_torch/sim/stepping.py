@@ -8,6 +8,14 @@ updated. Nothing is modified in place; there is no host synchronisation (no ``.i
 data-dependent branches or shapes): Python branches read ``config`` only, so the step can be
 compiled with ``torch.compile(fullgraph=True)`` and captured in a CUDA graph.
 
+The stages are a table, :data:`STAGES` (name, function ``Frame -> Frame``, condition on the
+config): the step runs them in order. A study swaps or wraps one through the API instead of
+copying the step::
+
+    stages = replace_stage(STAGES, "collisions", my_collisions)       # my_collisions(frame) -> frame
+    stages = wrap_stage(stages, "yield", lambda run: lambda f: count(run(f)))
+    sim = Simulator(rest, params, stages=stages)                       # or step(..., stages=stages)
+
 Profiler labels (``torch.profiler.record_function``): ``ams_torch.dynamics``,
 ``ams_torch.hair_hair``, ``ams_torch.collisions`` (and inside the dynamics ``ams_torch.assembly``,
 ``ams_torch.springs``, ``ams_torch.biphasic``, ``ams_torch.solve``, ``ams_torch.inextensibility``).
@@ -16,7 +24,7 @@ from __future__ import annotations
 
 import functools
 from contextlib import nullcontext
-from typing import Optional, Sequence
+from typing import Callable, NamedTuple, Optional, Sequence
 
 import torch
 from torch.profiler import record_function
@@ -32,9 +40,11 @@ from ams_torch.sim.native_contact import native_frame_contact
 from ams_torch.sim.model import Coefficients, Model, coefficients
 from ams_torch.sim.state import Config, Control, State
 from ams_torch.stages.collide import resolve_world_poses
-from ams_torch.stages.hair_hair import hair_hair_stage
+from ams_torch.stages.hair_hair import hair_hair_stage as hair_hair_interaction
 
-__all__ = ["step", "resolve_pose", "collisions", "plastic_update", "check_state", "SimulationDiverged",
+__all__ = ["step", "STAGES", "Stage", "Frame", "replace_stage", "wrap_stage", "begin_frame", "end_frame",
+           "dynamics_stage", "hair_hair_stage", "collisions_stage", "finish_stage", "yield_stage", "resolve_pose",
+           "collisions", "plastic_update", "check_state", "SimulationDiverged",
            "GridOverflow"]
 
 
@@ -157,7 +167,150 @@ def _label(name: str):
     return nullcontext()
 
 
-def step(model: Model, state: State, control: Control, config: Config, timer=None) -> State:
+class Frame(NamedTuple):
+    """What the stages of one frame hand along (immutable: a stage returns ``frame.replace(...)``).
+
+    Fixed for the frame: model, config, state (at its start), control, pose1 (the head at its end,
+    with velocities; :func:`resolve_pose`), hermite, coeffs (:func:`~ams_torch.sim.model.coefficients`),
+    native (the fused kernels run this frame), adjoint (a gradient frame of a native simulator: the
+    dynamics' native adjoint). Carried: x, v (..., S, N, 3) m, m/s; ghost_rest (..., S, N, 3) m head
+    frame; speed (None, or the finished frame's largest relative speed when the dynamics' kernel
+    finished it); overflow_frame, diverged_frame, diverged_input as in :class:`State` (None until
+    the stage that sets them ran).
+    """
+
+    model: Model
+    config: Config
+    state: State
+    control: Control
+    pose1: Pose
+    hermite: bool
+    coeffs: Coefficients
+    native: bool
+    adjoint: bool
+    x: torch.Tensor
+    v: torch.Tensor
+    ghost_rest: torch.Tensor
+    speed: Optional[torch.Tensor] = None
+    overflow_frame: Optional[torch.Tensor] = None
+    diverged_frame: Optional[torch.Tensor] = None
+    diverged_input: Optional[torch.Tensor] = None
+
+    def replace(self, **changes) -> "Frame":
+        return self._replace(**changes)
+
+
+def dynamics_stage(f: Frame) -> Frame:
+    """The strand dynamics (SPEC §4): M substeps and follow-the-leader (:mod:`ams_torch.sim.dynamics`,
+    or its fused kernel; with ``Params(contact="substep")`` the contact response after every
+    substep). When no later stage moves the hair, the native kernel also finishes the frame."""
+    model, config, state, control = f.model, f.config, f.state, f.control
+    contact = None  # Params(contact="substep"): the contact response after every substep
+    if config.contact == "substep" and config.colliders:
+        contact = functools.partial(substep_contact, model, config, collider_poses=control.collider_poses)
+    args = (model, f.coeffs, config, state.x, state.v, state.ghost_rest, state.sag_offset, state.pose, f.pose1,
+            f.hermite, f.state.time if control.time is None else control.time, control.external_force)
+    speed = None
+    if f.adjoint and contact is None:  # the native adjoint covers the dynamics without substep contact
+        x, v = native_frame_dynamics_diff(*args)
+    elif not f.native:
+        x, v = frame_dynamics(*args, contact=contact)
+    elif contact is not None:
+        x, v = native_frame_contact(*args, collider_poses=control.collider_poses)
+    elif config.hair_hair or config.colliders:
+        x, v = native_frame_dynamics(*args)
+    else:  # nothing runs after the dynamics: the frame's end is fused into its kernel
+        x, v, speed = native_frame_dynamics(*args, finish=f.pose1, pinned=model.pinned)
+    return f.replace(x=x, v=v, speed=speed)
+
+
+def hair_hair_stage(f: Frame) -> Frame:
+    """Hair–hair interaction (SPEC §6) on the model's grid; records the first grid overflow."""
+    x, v, overflow = hair_hair_interaction(f.model.hair_hair, f.x, f.v, f.coeffs.mass, f.pose1, f.config.dt,
+                                     ~f.model.pinned, backend="auto" if f.native else "torch", with_overflow=True)
+    before = f.overflow_frame if f.overflow_frame is not None else torch.full_like(f.state.frame, -1)
+    return f.replace(x=x, v=v, overflow_frame=torch.where(overflow & (before < 0), f.state.frame + 1, before))
+
+
+def collisions_stage(f: Frame) -> Frame:
+    """Hair–solid collisions and their edge-length restore (SPEC §8): :func:`collisions`."""
+    x, v = collisions(f.model, f.config, f.x, f.v, f.pose1, f.control.collider_poses, f.native)
+    return f.replace(x=x, v=v)
+
+
+def finish_stage(f: Frame) -> Frame:
+    """Pinned particles take the head's velocity; the divergence flag is updated (:func:`_finish`)."""
+    v, frame, bad_input = _finish(f.model, f.config, f.state, f.control, f.x, f.v, f.pose1, f.native, f.speed)
+    return f.replace(v=v, diverged_frame=frame, diverged_input=bad_input)
+
+
+def yield_stage(f: Frame) -> Frame:
+    """The non-Hookean plastic yield of the ghosts (SPEC §7): :func:`plastic_update`."""
+    return f.replace(ghost_rest=plastic_update(f.model, f.coeffs, f.x, f.ghost_rest, f.state.sag_offset, f.pose1))
+
+
+class Stage(NamedTuple):
+    """One stage of the frame: ``run(frame) -> frame``; it runs when ``enabled(config)``; ``timed``:
+    the step's ``timer`` (or profiler label) wraps it under ``name``."""
+
+    name: str
+    run: Callable[[Frame], Frame]
+    enabled: Callable[[Config], bool] = lambda config: True
+    timed: bool = False
+
+
+#: The frame's stages in order (SPEC §4): the step runs each enabled one. A study swaps or wraps a
+#: stage through :func:`replace_stage` / :func:`wrap_stage` and gives the sequence to
+#: :func:`step` (``stages=``) or to the simulator (``Simulator(..., stages=...)``).
+STAGES = (
+    Stage("dynamics", dynamics_stage, timed=True),
+    Stage("hair_hair", hair_hair_stage, lambda config: config.hair_hair, timed=True),
+    Stage("collisions", collisions_stage, lambda config: config.colliders > 0, timed=True),
+    Stage("finish", finish_stage),
+    Stage("yield", yield_stage, lambda config: config.nonhookean),
+)
+
+
+def replace_stage(stages: Sequence[Stage], name: str, run: Callable[[Frame], Frame]) -> tuple:
+    """The sequence with stage ``name``'s function replaced by ``run`` (its condition and label kept)."""
+    names = [s.name for s in stages]
+    if name not in names:
+        raise ValueError(f"no stage named {name!r}; the stages are {names}")
+    return tuple(s._replace(run=run) if s.name == name else s for s in stages)
+
+
+def wrap_stage(stages: Sequence[Stage], name: str, wrapper: Callable) -> tuple:
+    """The sequence with stage ``name`` run through ``wrapper(run) -> run`` (e.g. to count or log)."""
+    run = next((s.run for s in stages if s.name == name), None)
+    if run is None:
+        raise ValueError(f"no stage named {name!r}; the stages are {[s.name for s in stages]}")
+    return replace_stage(stages, name, wrapper(run))
+
+
+def begin_frame(model: Model, state: State, control: Control, config: Config) -> Frame:
+    """The frame's fixed inputs: end pose, coefficients, backend choice (:func:`stage_backend`)."""
+    pose1, hermite = resolve_pose(state.pose, control.pose, config.dt)
+    coeffs = coefficients(model)
+    native = stage_backend(config, state, coeffs, control, pose1) == "native"
+    # a gradient frame of a native simulator: the dynamics keep their fused kernel, with its native
+    # adjoint (sim/native_grad.py); the other stages take the torch definition
+    adjoint = not native and config.backend == "native"
+    return Frame(model=model, config=config, state=state, control=control, pose1=pose1, hermite=hermite,
+                 coeffs=coeffs, native=native, adjoint=adjoint, x=state.x, v=state.v, ghost_rest=state.ghost_rest,
+                 overflow_frame=state.overflow_frame)
+
+
+def end_frame(f: Frame) -> State:
+    """The new :class:`State` from a frame whose stages ran."""
+    s = f.state
+    time = s.time if f.control.time is None else f.control.time
+    return State(x=f.x, v=f.v, ghost_rest=f.ghost_rest, sag_offset=s.sag_offset, pose=f.pose1,
+                 time=time + f.config.dt, frame=s.frame + 1, diverged_frame=f.diverged_frame,
+                 diverged_input=f.diverged_input, overflow_frame=f.overflow_frame)
+
+
+def step(model: Model, state: State, control: Control, config: Config, timer=None,
+         stages: Sequence[Stage] = STAGES) -> State:
     """Advance one frame of ``config.dt`` seconds (SPEC §4). Pure: returns a new state.
 
     Args:
@@ -166,57 +319,24 @@ def step(model: Model, state: State, control: Control, config: Config, timer=Non
         state: the current state (x, v: (..., S, N, 3)).
         control: the frame's head pose, collider poses, time and external force.
         config: the frozen settings (the only thing Python branches on).
-        timer: optional ``timer(stage_name)`` returning a context manager around each stage
+        timer: optional ``timer(stage_name)`` returning a context manager around each timed stage
             ("dynamics", "hair_hair", "collisions"), e.g. to measure wall time per stage
             (``ams_torch.apps.scene.simulate``); default: profiler labels only.
+        stages: the frame's stages (default :data:`STAGES`: dynamics, hair–hair, collisions,
+            finish, yield), each run when its condition on ``config`` holds.
     Returns:
         the new :class:`State`.
     """
-    stage = timer or _label
-    dt = config.dt
-    pose0 = state.pose
-    pose1, hermite = resolve_pose(pose0, control.pose, dt)
-    coeffs = coefficients(model)
-    time = state.time if control.time is None else control.time
-    backend = stage_backend(config, state, coeffs, control, pose1)
-    native = backend == "native"  # the fused kernels (they keep the torch definition for what they cannot run)
-    # a gradient frame of a native simulator: the dynamics keep their fused kernel, with its native
-    # adjoint (sim/native_grad.py); the other stages take the torch definition
-    adjoint = not native and config.backend == "native"
-    speed = None
-    contact = None  # Params(contact="substep"): the contact response after every substep
-    if config.contact == "substep" and config.colliders:
-        contact = functools.partial(substep_contact, model, config, collider_poses=control.collider_poses)
-    with stage("dynamics"):
-        args = (model, coeffs, config, state.x, state.v, state.ghost_rest, state.sag_offset, pose0, pose1, hermite,
-                time, control.external_force)
-        if adjoint and contact is None:  # the native adjoint covers the dynamics without substep contact
-            x, v = native_frame_dynamics_diff(*args)
-        elif not native:
-            x, v = frame_dynamics(*args, contact=contact)
-        elif contact is not None:
-            x, v = native_frame_contact(*args, collider_poses=control.collider_poses)
-        elif config.hair_hair or config.colliders:
-            x, v = native_frame_dynamics(*args)
-        else:  # nothing runs after the dynamics: the frame's end is fused into its kernel
-            x, v, speed = native_frame_dynamics(*args, finish=pose1, pinned=model.pinned)
-    overflow_frame, next_frame = state.overflow_frame, state.frame + 1
-    if config.hair_hair:
-        with stage("hair_hair"):
-            x, v, overflow = hair_hair_stage(model.hair_hair, x, v, coeffs.mass, pose1, dt, ~model.pinned,
-                                             backend="auto" if native else "torch", with_overflow=True)
-        before = overflow_frame if overflow_frame is not None else torch.full_like(state.frame, -1)
-        overflow_frame = torch.where(overflow & (before < 0), next_frame, before)
-    if config.colliders:
-        with stage("collisions"):
-            x, v = collisions(model, config, x, v, pose1, control.collider_poses, native)
-    v, diverged_frame, diverged_input = _finish(model, config, state, control, x, v, pose1, native, speed)
-    ghost_rest = state.ghost_rest
-    if config.nonhookean:
-        ghost_rest = plastic_update(model, coeffs, x, ghost_rest, state.sag_offset, pose1)
-    return State(x=x, v=v, ghost_rest=ghost_rest, sag_offset=state.sag_offset, pose=pose1, time=time + dt,
-                 frame=next_frame, diverged_frame=diverged_frame, diverged_input=diverged_input,
-                 overflow_frame=overflow_frame)
+    label = timer or _label
+    f = begin_frame(model, state, control, config)
+    for s in stages:
+        if s.enabled(config):
+            if s.timed:
+                with label(s.name):
+                    f = s.run(f)
+            else:
+                f = s.run(f)
+    return end_frame(f)
 
 
 def check_state(state: State, config: Config, grid=None) -> None:
