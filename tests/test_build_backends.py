@@ -342,5 +342,5 @@ def test_frame_route(backend, contact, colliders, hair_hair, grad, want):
     from ams_torch.sim.backends import FRAME_ROUTES, frame_route
     from ams_torch.sim.state import Config
 
-    cfg = Config(dt=0.02, backend=backend, contact=contact, follow_head=(False,) * colliders, hair_hair=hair_hair)
+    cfg = Config(dt=0.02, backend=backend, contact=contact, colliders=colliders, hair_hair=hair_hair)
     assert frame_route(cfg, grad) == want and want in FRAME_ROUTES

@@ -31,6 +31,7 @@ from torch.profiler import record_function
 
 from ams_torch.geometry.pose import Pose
 from ams_torch.sim import forces
+from ams_torch.sim.backends import frame_route
 from ams_torch.sim.contact import collisions_world, substep_contact
 from ams_torch.sim.dynamics import frame_dynamics
 from ams_torch.sim.finish import native_finish, pin_and_speed
@@ -150,11 +151,11 @@ def _needs_grad(state: State, coeffs: Coefficients, control: Control, pose: Pose
     return any(isinstance(t, torch.Tensor) and t.requires_grad for t in tensors)
 
 
-def stage_backend(config: Config, state: State, coeffs: Coefficients, control: Control, pose: Pose) -> str:
-    """"torch" when the config says so or an input requires grad (gradients stay exact on the torch
-    definition; a native config's dynamics then run the native forward and adjoint, the other stages
-    the torch definition), else the config's "native" (SPEC §15)."""
-    if config.backend == "torch" or _needs_grad(state, coeffs, control, pose):
+def stage_backend(config: Config, needs_grad: bool) -> str:
+    """The stages after the dynamics: "torch" when the config says so or an input requires grad
+    (gradients stay exact on the torch definition), else the config's "native" (SPEC §15). The
+    dynamics take their route from :func:`~ams_torch.sim.backends.frame_route`."""
+    if config.backend == "torch" or needs_grad:
         return "torch"
     return config.backend
 
@@ -172,8 +173,8 @@ class Frame(NamedTuple):
 
     Fixed for the frame: model, config, state (at its start), control, pose1 (the head at its end,
     with velocities; :func:`resolve_pose`), hermite, coeffs (:func:`~ams_torch.sim.model.coefficients`),
-    native (the fused kernels run this frame), adjoint (a gradient frame of a native simulator: the
-    dynamics' native adjoint). Carried: x, v (..., S, N, 3) m, m/s; ghost_rest (..., S, N, 3) m head
+    native (the stages after the dynamics run their native kernels), route (how the dynamics run:
+    :func:`~ams_torch.sim.backends.frame_route`, a key of its ``FRAME_ROUTES``). Carried: x, v (..., S, N, 3) m, m/s; ghost_rest (..., S, N, 3) m head
     frame; speed (None, or the finished frame's largest relative speed when the dynamics' kernel
     finished it); overflow_frame, diverged_frame, diverged_input as in :class:`State` (None until
     the stage that sets them ran).
@@ -187,7 +188,7 @@ class Frame(NamedTuple):
     hermite: bool
     coeffs: Coefficients
     native: bool
-    adjoint: bool
+    route: str
     x: torch.Tensor
     v: torch.Tensor
     ghost_rest: torch.Tensor
@@ -211,15 +212,15 @@ def dynamics_stage(f: Frame) -> Frame:
     args = (model, f.coeffs, config, state.x, state.v, state.ghost_rest, state.sag_offset, state.pose, f.pose1,
             f.hermite, f.state.time if control.time is None else control.time, control.external_force)
     speed = None
-    if f.adjoint and contact is None:  # the native adjoint covers the dynamics without substep contact
+    if f.route == "native_adjoint":  # a gradient frame: the fused kernel and its native adjoint
         x, v = native_frame_dynamics_diff(*args)
-    elif not f.native:
+    elif f.route == "torch":
         x, v = frame_dynamics(*args, contact=contact)
-    elif contact is not None:
+    elif f.route == "native_contact":
         x, v = native_frame_contact(*args, collider_poses=control.collider_poses)
-    elif config.hair_hair or config.colliders:
+    elif f.route == "native":
         x, v = native_frame_dynamics(*args)
-    else:  # nothing runs after the dynamics: the frame's end is fused into its kernel
+    else:  # "native_finish": nothing runs after the dynamics; the frame's end is fused into its kernel
         x, v, speed = native_frame_dynamics(*args, finish=f.pose1, pinned=model.pinned)
     return f.replace(x=x, v=v, speed=speed)
 
@@ -291,12 +292,13 @@ def begin_frame(model: Model, state: State, control: Control, config: Config) ->
     """The frame's fixed inputs: end pose, coefficients, backend choice (:func:`stage_backend`)."""
     pose1, hermite = resolve_pose(state.pose, control.pose, config.dt)
     coeffs = coefficients(model)
-    native = stage_backend(config, state, coeffs, control, pose1) == "native"
-    # a gradient frame of a native simulator: the dynamics keep their fused kernel, with its native
-    # adjoint (sim/native_grad.py); the other stages take the torch definition
-    adjoint = not native and config.backend == "native"
+    needs_grad = _needs_grad(state, coeffs, control, pose1)
+    native = stage_backend(config, needs_grad) == "native"
+    # the one decision for the dynamics (a gradient frame of a native simulator keeps the fused
+    # kernel with its native adjoint, sim/native_grad.py; the other stages take the torch definition)
+    route = frame_route(config, needs_grad)
     return Frame(model=model, config=config, state=state, control=control, pose1=pose1, hermite=hermite,
-                 coeffs=coeffs, native=native, adjoint=adjoint, x=state.x, v=state.v, ghost_rest=state.ghost_rest,
+                 coeffs=coeffs, native=native, route=route, x=state.x, v=state.v, ghost_rest=state.ghost_rest,
                  overflow_frame=state.overflow_frame)
 
 
