@@ -1,8 +1,8 @@
 """Input factories shared by the tests and the benchmarks (library code never imports this module).
 
-Simple, deterministic grooms and motions (metres, seconds, head frame with +y up):
+Simple, deterministic grooms (metres, seconds, head frame with +y up):
 ``sphere_groom`` (strands on the upper half of a sphere "head"), ``curly_strand``,
-``wisp``, ``head_groom``, ``two_wisps`` and ``shake_poses``.
+``wisp``, ``head_groom`` and ``two_wisps`` (head motions: :mod:`ams_torch.apps.motion`).
 """
 from __future__ import annotations
 
@@ -11,19 +11,10 @@ import math
 import torch
 
 from ams_torch.apps.identify import at_material_points
-from ams_torch.apps.motion import Shake
 from ams_torch.grooms.simple import curly_strand, sphere_groom, wisp
 
-__all__ = ["sphere_groom", "curly_strand", "wisp", "head_groom", "two_wisps", "shake_poses", "shape_deviation", "at_material_points",
+__all__ = ["sphere_groom", "curly_strand", "wisp", "head_groom", "two_wisps", "shape_deviation", "at_material_points",
            "total_energy"]
-
-
-def shake_poses(frames: int, dt: float, amplitude: float = 0.6, frequency: float = 1.5,
-                axis=(0.0, 1.0, 0.0), translation_amplitude=(0.0, 0.0, 0.0), device=None,
-                dtype=torch.float32) -> list:
-    """The end-of-frame poses t = dt, …, frames·dt of :class:`ams_torch.apps.motion.Shake`
-    (amplitude rad, frequency Hz, axis, translation_amplitude m): a list of :class:`Pose`."""
-    return Shake(amplitude, frequency, axis, translation_amplitude).poses(frames, dt, device=device, dtype=dtype)
 
 
 def shape_deviation(x: torch.Tensor, rest: torch.Tensor, align: bool = False) -> torch.Tensor:

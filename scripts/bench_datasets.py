@@ -77,10 +77,10 @@ def bench_recipe(strands: int, particles: int, frames: int, sequences: int, batc
 def _batched_shakes(frames: int, dt: float, scenes: int):
     """One pose batch (B, 3, 3) per frame: B head shakes of different amplitudes and frequencies."""
     from ams_torch.geometry.pose import Pose
-    from ams_torch.testing import shake_poses
+    from ams_torch.apps.motion import Shake
 
-    runs = [shake_poses(frames, dt, amplitude=0.3 + 0.6 * b / max(1, scenes - 1), frequency=0.8 + 1.2 * b / max(
-        1, scenes - 1)) for b in range(scenes)]
+    runs = [Shake(amplitude=0.3 + 0.6 * b / max(1, scenes - 1), frequency=0.8 + 1.2 * b / max(
+        1, scenes - 1)).poses(frames, dt) for b in range(scenes)]
     return [Pose(*(torch.stack([getattr(r[k], f) for r in runs]) for f in
                    ("rotation", "translation", "linear_velocity", "angular_velocity")), check=False)
             for k in range(frames)]

@@ -55,7 +55,7 @@ import ams_torch as at  # noqa: E402
 from ams_torch._bench import machine, machine_info, shown_args, sync  # noqa: E402
 from ams_torch.geometry.sdf import SDFGrid  # noqa: E402
 from ams_torch.grooms.head import hanging_groom  # noqa: E402
-from ams_torch.testing import shake_poses  # noqa: E402
+from ams_torch.apps.motion import Shake  # noqa: E402
 
 STAGES = ("dynamics", "hair_hair", "collisions")
 #: glibc malloc settings of the timing process (read by glibc at start-up: see the module docstring)
@@ -93,7 +93,7 @@ def build_case(scene: str, strands: int, device, dtype, resolution: int, head, g
         cols = [at.MeshCollider(grid)] if scene == "every_stage" else None
         sims = {p: at.Simulator(rest, at.Params(), device=device, dtype=dtype, hair_hair=hh, colliders=cols,
                                 backend=p) for p in PATHS}
-    poses = shake_poses(240, 1 / 60, amplitude=0.6, frequency=1.5, device=device, dtype=dtype)
+    poses = Shake(amplitude=0.6, frequency=1.5).poses(240, 1 / 60, device=device, dtype=dtype)
     return {"sims": sims, "states": {p: s.initial_state() for p, s in sims.items()}, "poses": poses, "k": 0}
 
 

@@ -49,7 +49,7 @@ import ams_torch as at  # noqa: E402
 from ams_torch._bench import machine, machine_info, shown_args, sync  # noqa: E402
 from ams_torch.geometry.sdf import SDFGrid  # noqa: E402
 from ams_torch.grooms.head import hanging_groom  # noqa: E402
-from ams_torch.testing import shake_poses  # noqa: E402
+from ams_torch.apps.motion import Shake  # noqa: E402
 
 PATHS = ("native", "torch")
 STAGES = ("dynamics", "hair_hair", "collisions")
@@ -126,7 +126,7 @@ def run_case(scene: str, strands: int, args, head, grid, paths) -> list:
     device, dtype = torch.device(args.device), getattr(torch, args.dtype)
     sims = {p: build_sim(scene, strands, p, device, dtype, args.resolution, head, grid) for p in paths}
     case = {"sims": sims, "states": {p: s.initial_state() for p, s in sims.items()}, "k": 0,
-            "poses": shake_poses(240, 1 / 60, amplitude=0.6, frequency=1.5, device=device, dtype=dtype)}
+            "poses": Shake(amplitude=0.6, frequency=1.5).poses(240, 1 / 60, device=device, dtype=dtype)}
     case["w"] = torch.randn(case["states"][paths[0]].x.shape, generator=torch.Generator().manual_seed(0),
                             dtype=dtype).to(device)
     for path in paths:  # warm-up
@@ -173,7 +173,7 @@ def memory_probe(strands: int, frames: int, every: int, path: str, device: str, 
     head = at.default_head(4)
     grid = SDFGrid.from_mesh(head, resolution=64)
     sim = build_sim("every_stage", strands, path, device, dtype_, resolution, head, grid)
-    poses = shake_poses(frames, 1 / 60, amplitude=0.6, frequency=1.5, device=device, dtype=dtype_)
+    poses = Shake(amplitude=0.6, frequency=1.5).poses(frames, 1 / 60, device=device, dtype=dtype_)
     w = torch.randn((strands, 32, 3), generator=torch.Generator().manual_seed(0), dtype=dtype_).to(device)
 
     def once(count):

@@ -43,7 +43,8 @@ sys.path.insert(0, str(REPO))
 import ams_torch as at  # noqa: E402
 from ams_torch._bench import machine_info, shown_args  # noqa: E402
 from ams_torch.grooms.groom import resample_strands  # noqa: E402
-from ams_torch.testing import at_material_points, shake_poses  # noqa: E402
+from ams_torch.apps.motion import Shake  # noqa: E402
+from ams_torch.testing import at_material_points  # noqa: E402
 
 F64 = torch.float64
 NS = (16, 32, 64)  # the particle counts whose errors are judged
@@ -65,7 +66,7 @@ def preset_case(name: str, strands: int = 6, frames: int = 60, seed: int = 0, co
 
     head = at.default_head(4)
     groom = at.preset(name, strands=strands, particles=1025, seed=seed, mesh=head)
-    poses = shake_poses(frames, 1 / 60, amplitude=0.6, frequency=1.5, dtype=F64)
+    poses = Shake(amplitude=0.6, frequency=1.5).poses(frames, 1 / 60, dtype=F64)
     colliders = [at.MeshCollider(SDFGrid.from_mesh(head, resolution=64))] if collide else []
     return {"name": name + ("_head" if collide else ""), "fine": groom.rest_positions.double(), "poses": poses,
             "colliders": colliders,

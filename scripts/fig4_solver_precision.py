@@ -63,7 +63,7 @@ issue's range and reports them in a section of their own: where the dtype or the
 
 Grooms: ``curly_strand(30)`` (the single curly strand of Fig. 4, 30 particles, hanging from the
 origin) and ``sphere_groom(8, 16, seed=4)`` (the groom of ``docs/stability.md``). Motions: ``rest``
-(head still, gravity only) and ``shake`` (``shake_poses``: rotation 0.6·sin(2π·1.5 t) rad about y
+(head still, gravity only) and ``shake`` (``apps.motion.Shake``: rotation 0.6·sin(2π·1.5 t) rad about y
 plus a translation (5, 2, 0) cm · sin(2π·1.5 t)).
 
     python scripts/fig4_solver_precision.py            # full grid + beyond, docs/stability_fig4.{md,json,png}
@@ -94,7 +94,9 @@ from ams_torch.solver.reference import (
     banded_matvec,
     banded_to_dense,
 )
-from ams_torch.testing import curly_strand, shake_poses, sphere_groom
+from ams_torch.apps.motion import Shake
+
+from ams_torch.testing import curly_strand, sphere_groom
 
 __all__ = [
     "SOLVERS",
@@ -365,13 +367,12 @@ def make_params(kl: float, inextensibility: bool, dt: float) -> at.Params:
 
 def make_poses(motion: str, frames: int, dt: float, dtype, amplitude: float = 0.6, frequency: float = 1.5,
                translation=(0.05, 0.02, 0.0)) -> list:
-    """``rest``: [None] * frames (head still); ``shake``: ``shake_poses`` (rotation about y and a
+    """``rest``: [None] * frames (head still); ``shake``: ``apps.motion.Shake`` (rotation about y and a
     translation, same frequency)."""
     if motion == "rest":
         return [None] * frames
     if motion == "shake":
-        return shake_poses(frames, dt, amplitude=amplitude, frequency=frequency,
-                           translation_amplitude=tuple(translation), dtype=dtype)
+        return Shake(amplitude=amplitude, frequency=frequency, translation=tuple(translation)).poses(frames, dt, dtype=dtype)
     raise ValueError(f"unknown motion {motion!r}; choose rest or shake")
 
 
@@ -946,7 +947,7 @@ def write_doc(cells: list, beyond: list, info: dict, args, path: Path, plot: str
              "solve, `ams_torch.sim.dynamics.solve_banded`, is patched for each run with the solver under test "
              "(everything else is the library's code).")
     L.append("- Grooms: " + "; ".join(f"`{g}` = {GROOMS[g]}" for g in args.grooms) + ".")
-    L.append(f"- Motions: `rest` (head still, gravity only) and `shake` (`shake_poses`: rotation {args.amplitude} · "
+    L.append(f"- Motions: `rest` (head still, gravity only) and `shake` (`apps.motion.Shake`: rotation {args.amplitude} · "
              f"sin(2π · {args.frequency} t) rad about y plus a translation "
              f"({', '.join(f'{100 * t:g}' for t in args.translation)}) cm · sin(2π · {args.frequency} t)).")
     L.append("- Solvers: " + "; ".join(f"`{s}` = {SOLVER_LABELS[s]}" for s in sol) + ". The explicit-inverse LU "

@@ -53,7 +53,8 @@ from ams_torch.apps.identify import (  # noqa: E402,F401  (the script's namespac
 from ams_torch.apps.identify import make_target as _make_target  # noqa: E402
 from ams_torch.apps.motion import RollerCoaster  # noqa: E402
 from ams_torch.grooms.groom import resample_strands  # noqa: E402
-from ams_torch.testing import shake_poses, sphere_groom  # noqa: E402
+from ams_torch.apps.motion import Shake  # noqa: E402
+from ams_torch.testing import sphere_groom  # noqa: E402
 
 F64 = torch.float64
 DT = 1.0 / 60.0
@@ -81,7 +82,7 @@ COASTER_BREAK = 1.0
 
 
 def shake_motion(frames: int = 60):
-    return shake_poses(frames, DT, amplitude=0.6, frequency=1.5, translation_amplitude=(0.03, 0.03, 0.0), dtype=F64)
+    return Shake(amplitude=0.6, frequency=1.5, translation=(0.03, 0.03, 0.0)).poses(frames, DT, dtype=F64)
 
 
 def coaster_motion(frames: int = 92):

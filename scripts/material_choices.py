@@ -34,7 +34,8 @@ sys.path.insert(0, str(REPO / "scripts"))
 import ams_torch as at  # noqa: E402
 from ams_torch._bench import machine_info  # noqa: E402
 from ams_torch.grooms.groom import resample_strands  # noqa: E402
-from ams_torch.testing import shake_poses, total_energy, wisp  # noqa: E402
+from ams_torch.apps.motion import Shake  # noqa: E402
+from ams_torch.testing import total_energy, wisp  # noqa: E402
 
 import convergence_n  # noqa: E402
 

@@ -6,7 +6,7 @@ length dt (1/1000 … 1/24 s, M = 1 substep), biphasic stiffness κ_I = κ_α (0
 inextensibility stage on (the library default) and off (the springs alone).
 
 Groom and motion: the factories of ``tests/test_core.py::test_extremes_stay_finite_and_inextensible``,
-``sphere_groom`` (``--strands`` strands × 16 particles, 0.25 m, seed 4) and ``shake_poses``: a
+``sphere_groom`` (``--strands`` strands × 16 particles, 0.25 m, seed 4) and ``Shake`` (ams_torch.apps.motion): a
 sinusoidal translation (a, 0.3 a, 0) · sin(2π f t) at f = 2 Hz whose peak acceleration along x is
 ``accel_g`` · 9.81 m/s², for ``--duration`` s (two periods by default). Gravity and drag 1.5 s⁻¹ on.
 
@@ -50,7 +50,8 @@ sys.path.insert(0, str(REPO))
 import ams_torch as at  # noqa: E402
 from ams_torch._bench import machine_info, shown_args  # noqa: E402
 from ams_torch.sim.inextensibility import max_stretch  # noqa: E402
-from ams_torch.testing import shake_poses, sphere_groom  # noqa: E402
+from ams_torch.apps.motion import Shake  # noqa: E402
+from ams_torch.testing import sphere_groom  # noqa: E402
 
 G = 9.81
 STATUSES = ("stable", "stretch", "energy", "nan")  # increasing severity
@@ -74,8 +75,7 @@ def motion(accels_g, frames: int, dt: float, frequency: float, dtype) -> list:
     per = []
     for a_g in accels_g:
         amp = a_g * G / (2 * math.pi * frequency) ** 2
-        per.append(shake_poses(frames, dt, amplitude=0.0, frequency=frequency,
-                               translation_amplitude=(amp, 0.3 * amp, 0.0), dtype=dtype))
+        per.append(Shake(amplitude=0.0, frequency=frequency, translation=(amp, 0.3 * amp, 0.0)).poses(frames, dt, dtype=dtype))
     return stack_poses(per)
 
 

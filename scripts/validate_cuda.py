@@ -208,11 +208,11 @@ def _sync(device) -> None:
 def step_compile(ctx: dict) -> dict:
     import torch
 
-    from ams_torch.testing import shake_poses
+    from ams_torch.apps.motion import Shake
 
     s, device = ctx["sizes"], ctx["device"]
     sim = _every_stage(device, torch.float32, s["compile_strands"], s)
-    poses = shake_poses(4, sim.params.dt, amplitude=1.0, device=device)
+    poses = Shake(amplitude=1.0).poses(4, sim.params.dt, device=device)
     explained = torch._dynamo.explain(sim.step)(sim.initial_state(), poses[0])
     torch._dynamo.reset()
     t0 = time.perf_counter()
@@ -279,7 +279,7 @@ def step_sizes(ctx: dict) -> dict:
     import torch
 
     import ams_torch as at
-    from ams_torch import testing
+    from ams_torch.apps.motion import Shake
     from ams_torch.solver.op import solve_banded
     from ams_torch.solver.reference import banded_matvec
 
@@ -309,7 +309,7 @@ def step_sizes(ctx: dict) -> dict:
         out = {}
         for dtype in (torch.float64, torch.float32):
             sims = {d: _every_stage(d, dtype, strands, s, particles=n) for d in ("cpu", device)}
-            poses = testing.shake_poses(3, sims["cpu"].params.dt, amplitude=0.8, dtype=dtype)
+            poses = Shake(amplitude=0.8).poses(3, sims["cpu"].params.dt, dtype=dtype)
             pose0 = at.Pose.stack([poses[0]] * scenes) if scenes > 1 else poses[0]
             pose1 = at.Pose.stack([poses[1]] * scenes) if scenes > 1 else poses[1]
             states = {d: sims[d].step(sims[d].initial_state(pose0.to(device=d)), pose1.to(device=d)) for d in sims}
@@ -332,13 +332,13 @@ def step_graph(ctx: dict) -> dict:
     import torch
 
     from ams_torch.sim.cuda_graph import GraphedStep, eager_capture
-    from ams_torch.testing import shake_poses
+    from ams_torch.apps.motion import Shake
 
     s, device = ctx["sizes"], ctx["device"]
     out = {}
     for strands in s["graph_strands"]:
         sim = _every_stage(device, torch.float32, strands, s)
-        frames = shake_poses(s["graph_frames"] + 1, sim.params.dt, amplitude=0.6, device=device)
+        frames = Shake(amplitude=0.6).poses(s["graph_frames"] + 1, sim.params.dt, device=device)
         graphed = GraphedStep(sim, capture=None if not ctx["dry"] else eager_capture, clone=False)
         se = sg = sim.initial_state()
         se, sg = sim.step(se, frames[0]), graphed(sg, frames[0])  # capture
@@ -426,11 +426,12 @@ def _sanitizer():
 SANITIZED = """
 import torch, ams_torch as at
 from ams_torch.stages.collide import SphereCollider
-from ams_torch.testing import shake_poses, sphere_groom
+from ams_torch.apps.motion import Shake
+from ams_torch.testing import sphere_groom
 sim = at.Simulator(sphere_groom(64, 16), at.Params(), device="cuda", colliders=[SphereCollider((0, 0, 0), 0.106)],
                    hair_hair=at.HairHair(resolution=16))
 state = sim.initial_state()
-for pose in shake_poses(2, sim.params.dt, device="cuda"):
+for pose in Shake().poses(2, sim.params.dt, device="cuda"):
     state = sim.step(state, pose)
 torch.cuda.synchronize()
 print("ok", float(state.x.abs().max()))

@@ -408,7 +408,7 @@ def test_contact_does_not_leave_stretched_edges(head_collider):
     from ams_torch.grooms.head import hanging_groom
     from ams_torch.sim.params import Params
     from ams_torch.sim.simulator import Simulator
-    from ams_torch.testing import shake_poses
+    from ams_torch.apps.motion import Shake
 
     grid = head_collider.sdf
     rest = hanging_groom(default_head(), 200, 24, 0.25, sdf=grid, seed=1)
@@ -418,7 +418,7 @@ def test_contact_does_not_leave_stretched_edges(head_collider):
         state = sim.initial_state()
         free = ~sim.model.pinned
         stretch, worst = 0.0, 0.0
-        for pose in shake_poses(40, sim.params.dt, amplitude=1.2, frequency=2.0):
+        for pose in Shake(amplitude=1.2, frequency=2.0).poses(40, sim.params.dt):
             state = sim.step(state, pose)
             stretch = max(stretch, float(max_stretch(state.x, sim.model.edge_rest_length).max()))
             d = collider_distances(state.x, [head_collider], resolve_world_poses([head_collider], pose))[0]

@@ -9,7 +9,9 @@ import ams_torch as at
 from ams_torch.sim.inextensibility import max_stretch
 from ams_torch import testing
 from ams_torch.sim.state import Control
-from ams_torch.testing import curly_strand, shake_poses, sphere_groom, wisp
+from ams_torch.apps.motion import Shake
+
+from ams_torch.testing import curly_strand, sphere_groom, wisp
 
 from ams_torch.sim import stepping as step_mod
 
@@ -75,8 +77,7 @@ def test_roots_follow_the_head_and_get_its_velocity(device):
     rest = sphere_groom(20, 12, seed=2, dtype=F64)
     p = at.Params(dt=1 / 60)
     sim = at.Simulator(rest, p, dtype=F64, device=device)
-    poses = shake_poses(30, p.dt, amplitude=0.8, frequency=2.0, translation_amplitude=(0.05, 0.02, 0.0), dtype=F64,
-                        device=device)
+    poses = Shake(amplitude=0.8, frequency=2.0, translation=(0.05, 0.02, 0.0)).poses(30, p.dt, dtype=F64, device=device)
     s = sim.initial_state()
     for pose in poses:
         s = sim.step(s, pose)
@@ -179,8 +180,7 @@ def test_extremes_stay_finite_and_stretch_only_as_the_head_forces(stiffness_rati
     freq = 2.0
     for accel_g in (0.0, 10.0, 50.0):
         amp = accel_g * 9.81 / (2 * math.pi * freq) ** 2
-        poses = shake_poses(frames, dt, amplitude=0.0, frequency=freq, translation_amplitude=(amp, 0.3 * amp, 0.0),
-                            device=device)
+        poses = Shake(amplitude=0.0, frequency=freq, translation=(amp, 0.3 * amp, 0.0)).poses(frames, dt, device=device)
         s = sim.initial_state()
         before = 0.0
         speed = max(float(pose.linear_velocity.norm()) for pose in poses)
@@ -204,7 +204,7 @@ def test_extremes_stay_finite_and_stretch_only_as_the_head_forces(stiffness_rati
 def test_batched_equals_one_strand_at_a_time(device):
     rest = sphere_groom(5, 12, seed=5, dtype=F64)
     p = at.Params(substeps=2)
-    poses = shake_poses(20, p.dt, amplitude=0.6, frequency=2.0, dtype=F64)
+    poses = Shake(amplitude=0.6, frequency=2.0).poses(20, p.dt, dtype=F64)
     sim = at.Simulator(rest, p, dtype=F64, device=device)
     together = run(sim, sim.initial_state(), 20, poses).x
     for i in range(rest.shape[0]):
@@ -217,8 +217,8 @@ def test_scene_batch_equals_separate_runs(device):
     rest = sphere_groom(6, 10, seed=6, dtype=F64)
     p = at.Params()
     sim = at.Simulator(rest, p, dtype=F64, device=device)
-    a = shake_poses(15, p.dt, amplitude=0.5, frequency=2.0, dtype=F64)
-    b = shake_poses(15, p.dt, amplitude=0.3, frequency=1.0, axis=(1.0, 0.0, 0.0), dtype=F64)
+    a = Shake(amplitude=0.5, frequency=2.0).poses(15, p.dt, dtype=F64)
+    b = Shake(amplitude=0.3, frequency=1.0, axis=(1.0, 0.0, 0.0)).poses(15, p.dt, dtype=F64)
     stack = lambda pa, pb: at.Pose(*(torch.stack((getattr(pa, f), getattr(pb, f))) for f in  # noqa: E731
                                      ("rotation", "translation", "linear_velocity", "angular_velocity")))
     s = sim.initial_state(stack(at.Pose.identity(dtype=F64), at.Pose.identity(dtype=F64)))
@@ -236,7 +236,7 @@ def test_float32_tracks_float64_on_demo_motion(device):
     out = {}
     for dtype in (torch.float32, F64):
         sim = at.Simulator(rest, p, dtype=dtype, device=device)
-        poses = shake_poses(60, p.dt, dtype=dtype)
+        poses = Shake().poses(60, p.dt, dtype=dtype)
         out[dtype] = run(sim, sim.initial_state(), 60, poses).x.double()
     err = (out[torch.float32] - out[F64]).norm(dim=-1).max()
     assert err <= 1e-4, f"float32 vs float64 after 60 frames: {err * 1e3:.3g} mm"

@@ -216,7 +216,9 @@ def test_cuda_p2g_deterministic_mode():
 def test_cuda_step_compiles_fullgraph():
     """torch.compile(sim.step, fullgraph=True) with inductor on the device, every stage on: equal to
     eager over 3 frames."""
-    from ams_torch.testing import shake_poses, sphere_groom
+    from ams_torch.apps.motion import Shake
+
+    from ams_torch.testing import sphere_groom
 
     sim = ams_torch.Simulator(sphere_groom(200, 16), ams_torch.Params(), device=DEVICE,
                               colliders=[SphereCollider((0.0, 0.0, 0.0), 0.106)],
@@ -224,7 +226,7 @@ def test_cuda_step_compiles_fullgraph():
     torch._dynamo.reset()
     compiled = torch.compile(sim.step, fullgraph=True, backend="inductor" if DEVICE == "cuda" else "aot_eager")
     se = sc = sim.initial_state()
-    for pose in shake_poses(3, sim.params.dt, amplitude=1.0, device=DEVICE):
+    for pose in Shake(amplitude=1.0).poses(3, sim.params.dt, device=DEVICE):
         se, sc = sim.step(se, pose), compiled(sc, pose)
     torch.testing.assert_close(sc.x, se.x, rtol=1e-5, atol=1e-6)
     torch._dynamo.reset()

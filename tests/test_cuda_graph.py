@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from ams_torch.apps.motion import Shake
 import ams_torch
 from ams_torch import testing
 from ams_torch.geometry.pose import Pose
@@ -25,8 +26,7 @@ def make_sim(device="cpu", dtype=F64, **kw):
 
 
 def poses(sim, frames=8, scenes=None):
-    one = lambda b: testing.shake_poses(frames, sim.config.dt, amplitude=0.5 + 0.2 * b, dtype=sim.dtype,  # noqa: E731
-                                        device=sim.device)
+    one = lambda b: Shake(amplitude=0.5 + 0.2 * b).poses(frames, sim.config.dt, dtype=sim.dtype, device=sim.device)
     if scenes is None:
         return one(0)
     ms = [one(b) for b in range(scenes)]

@@ -15,7 +15,9 @@ import ams_torch as at
 from ams_torch.geometry.pose import Pose
 from ams_torch.stages import CapsuleCollider, HollowSphereCollider, PlaneCollider, SphereCollider
 from ams_torch.stages.collide import MeshCollider
-from ams_torch.testing import shake_poses, sphere_groom
+from ams_torch.apps.motion import Shake
+
+from ams_torch.testing import sphere_groom
 
 F64 = torch.float64
 FRAMES = 4
@@ -77,8 +79,7 @@ class _Rollout:
         self.sim = at.Simulator(self.rest, at.Params(), dtype=F64, colliders=colliders, hair_hair=hair_hair,
                                 learnable=("integrity_rate", "drag"), backend="torch")
         self.free_sim = at.Simulator(self.rest, at.Params(), dtype=F64, hair_hair=hair_hair, backend="torch")
-        self.poses = shake_poses(FRAMES, 1 / 60, amplitude=0.8, frequency=2.0,
-                                 translation_amplitude=(0.02, 0.03, 0.0), dtype=F64)
+        self.poses = Shake(amplitude=0.8, frequency=2.0, translation=(0.02, 0.03, 0.0)).poses(FRAMES, 1 / 60, dtype=F64)
         g = torch.Generator().manual_seed(7)
         self.wx = torch.randn(self.rest.shape, generator=g, dtype=F64)
         self.wv = torch.randn(self.rest.shape, generator=g, dtype=F64)

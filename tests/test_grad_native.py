@@ -17,7 +17,9 @@ from conftest import built_native
 import ams_torch as at
 from ams_torch.geometry.pose import Pose
 from ams_torch.sim import native_grad
-from ams_torch.testing import shake_poses, sphere_groom
+from ams_torch.apps.motion import Shake
+
+from ams_torch.testing import sphere_groom
 
 F64 = torch.float64
 MATERIAL = ("linear_density", "drag", "stretch_rigidity", "bend_rigidity", "torsion_rigidity", "integrity_rate",
@@ -48,8 +50,7 @@ def _gradients(backend: str, params: at.Params, learnable=MATERIAL, frames: int 
     dx, dv, dg, ext = leaf(1e-3), leaf(1e-2), leaf(1e-4), leaf(1e-6)
     shift = torch.zeros(batch + (3,) if (scenes and not shared_pose) else (3,), dtype=dtype, requires_grad=True)
     w = torch.randn(shape, generator=g, dtype=dtype)
-    base = shake_poses(frames, 1 / 60, amplitude=0.8, frequency=2.0, translation_amplitude=(0.02, 0.01, 0.0),
-                       dtype=dtype)
+    base = Shake(amplitude=0.8, frequency=2.0, translation=(0.02, 0.01, 0.0)).poses(frames, 1 / 60, dtype=dtype)
     init = None
     if scenes:
         angles = torch.linspace(0.0, 0.5, scenes, dtype=dtype)
@@ -186,7 +187,7 @@ def _op_inputs(scenes=0, substeps=2, strands=3, particles=6):
     g = torch.Generator().manual_seed(1)
     x = s.x + 1e-3 * torch.randn(s.x.shape, generator=g, dtype=F64)
     v = 1e-2 * torch.randn(s.x.shape, generator=g, dtype=F64)
-    p1 = shake_poses(1, 1 / 60, amplitude=0.8, translation_amplitude=(0.02, 0.0, 0.01), dtype=F64)[0]
+    p1 = Shake(amplitude=0.8, translation=(0.02, 0.0, 0.01)).poses(1, 1 / 60, dtype=F64)[0]
     ext = 1e-6 * torch.randn(s.x.shape, generator=g, dtype=F64)
     state, ext, model, _, *settings = op_arguments(sim.model, coeffs, sim.config, x, v, s.ghost_rest, s.sag_offset,
                                                    s.pose, p1, True, ext)

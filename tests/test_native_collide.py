@@ -23,6 +23,7 @@ import pytest
 import torch
 from conftest import built_native, rel
 
+from ams_torch.apps.motion import Shake
 import ams_torch
 from ams_torch import testing
 from ams_torch.geometry.pose import Pose
@@ -81,8 +82,7 @@ def make_case(kind: str, dtype=F64, scenes=None, strands=15, particles=10, seed=
     dt = sim.config.dt
 
     def motion(b):
-        return testing.shake_poses(3, dt, amplitude=0.4 + 0.3 * b, translation_amplitude=(0.03, 0.02 * b, 0.0),
-                                   dtype=dtype)[1]
+        return Shake(amplitude=0.4 + 0.3 * b, translation=(0.03, 0.02 * b, 0.0)).poses(3, dt, dtype=dtype)[1]
 
     head = motion(0) if scenes is None else Pose.stack([motion(b) for b in range(scenes)])
     state = sim.initial_state(head)
@@ -215,8 +215,7 @@ def test_sixty_frames_in_contact(collide_ops):
             PlaneCollider((0.0, -0.15, 0.0), (0.1, 1.0, 0.0), friction=0.8),
             CapsuleCollider((-0.2, -0.08, 0.06), (0.2, -0.1, 0.06), 0.03, friction=0.3)]
     sim = ams_torch.Simulator(rest, ams_torch.Params(), dtype=F64, colliders=cols)
-    poses = testing.shake_poses(61, sim.config.dt, amplitude=0.7, frequency=1.5, translation_amplitude=(0.04, 0.03, 0),
-                                dtype=F64)
+    poses = Shake(amplitude=0.7, frequency=1.5, translation=(0.04, 0.03, 0)).poses(61, sim.config.dt, dtype=F64)
     state = sim.initial_state(poses[0])
     coeffs = coefficients(sim.model)
     frame_ns = _native.native_ops("frame_cpu")

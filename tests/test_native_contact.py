@@ -16,6 +16,7 @@ import torch
 from conftest import built_native, rel
 from test_native_collide import KINDS, make_colliders
 
+from ams_torch.apps.motion import Shake
 import ams_torch
 from ams_torch import testing
 from ams_torch.geometry.pose import Pose
@@ -40,8 +41,7 @@ def make_frame(kind: str, scenes=None, substeps=3, strands=15, particles=10, see
     dt = sim.config.dt
 
     def motion(b):
-        return testing.shake_poses(3, dt, amplitude=0.4 + 0.3 * b, translation_amplitude=(0.03, 0.02 * b, 0.0),
-                                   dtype=dtype)[:2]
+        return Shake(amplitude=0.4 + 0.3 * b, translation=(0.03, 0.02 * b, 0.0)).poses(3, dt, dtype=dtype)[:2]
 
     if scenes is None:
         pose0, pose1 = motion(0)
@@ -100,8 +100,7 @@ def test_frame_by_frame_through_the_simulator(frame_ops):
                                    colliders=make_colliders("all", rest), backend=b) for b in ("torch", "native")}
     states = {b: s.initial_state() for b, s in sims.items()}
     inside = 0
-    for k, pose in enumerate(testing.shake_poses(30, 1 / 60, amplitude=0.8, translation_amplitude=(0.04, 0.03, 0.0),
-                                                 dtype=F64)):
+    for k, pose in enumerate(Shake(amplitude=0.8, translation=(0.04, 0.03, 0.0)).poses(30, 1 / 60, dtype=F64)):
         states = {b: sims[b].step(states[b], pose) for b in sims}
         assert rel(states["native"].x, states["torch"].x) <= 1e-9, k
         assert rel(states["native"].v, states["torch"].v) <= 1e-8, k

@@ -112,11 +112,11 @@ def test_gradients_stay_on_the_definition(frame_ops):
 def _shaken(backend, dtype=F64):
     head = at.default_head(3)
     from ams_torch.grooms.head import hanging_groom
-    from ams_torch.testing import shake_poses
+    from ams_torch.apps.motion import Shake
 
     rest = hanging_groom(head, 24, 8, 0.12, seed=3)
     sim = at.Simulator(rest, at.Params(substeps=2), dtype=dtype, backend=backend)
-    return sim, shake_poses(12, 1 / 60, amplitude=0.6, frequency=1.5, dtype=dtype)
+    return sim, Shake(amplitude=0.6, frequency=1.5).poses(12, 1 / 60, dtype=dtype)
 
 
 def test_simulator_frames_native_equal_torch(frame_ops):

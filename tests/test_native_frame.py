@@ -29,6 +29,7 @@ import pytest
 import torch
 from conftest import DEVICES, built_native, rel
 
+from ams_torch.apps.motion import Shake
 import ams_torch
 from ams_torch import testing
 from ams_torch.geometry.pose import Pose
@@ -84,9 +85,7 @@ def make_scene(dtype=F64, device="cpu", strands=13, particles=12, scenes=None, g
     dt = sim.config.dt
 
     def motion(b):
-        return testing.shake_poses(frame + 1, dt, amplitude=0.6 + 0.3 * b, frequency=1.5 + 0.5 * b,
-                                   axis=(0.2 * b, 1.0, 0.1), translation_amplitude=(0.05, 0.03 * b, 0.02),
-                                   dtype=dtype, device=device)
+        return Shake(amplitude=0.6 + 0.3 * b, frequency=1.5 + 0.5 * b, axis=(0.2 * b, 1.0, 0.1), translation=(0.05, 0.03 * b, 0.02)).poses(frame + 1, dt, dtype=dtype, device=device)
 
     if scenes is None:
         pose0, pose1 = motion(0)[frame - 1:frame + 1]
@@ -396,8 +395,7 @@ def test_sixty_frames_of_a_shaken_groom(frame_ops):
     stays on the torch one (report: the max difference, in metres)."""
     rest = testing.sphere_groom(24, 16, dtype=F64)
     sim = ams_torch.Simulator(rest, ams_torch.Params(substeps=2), dtype=F64)
-    poses = testing.shake_poses(61, sim.config.dt, amplitude=0.8, frequency=2.0, translation_amplitude=(0.05, 0.03, 0),
-                                dtype=F64)
+    poses = Shake(amplitude=0.8, frequency=2.0, translation=(0.05, 0.03, 0)).poses(61, sim.config.dt, dtype=F64)
     state = sim.initial_state(poses[0])
     coeffs = coefficients(sim.model)
     xs = {"torch": (state.x, state.v), "native": (state.x, state.v)}

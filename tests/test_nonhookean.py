@@ -6,7 +6,10 @@ import torch
 import ams_torch as at
 from ams_torch.sim import forces
 from ams_torch.apps.motion import RollerCoaster, Shake
-from ams_torch.testing import shake_poses, shape_deviation, sphere_groom
+from ams_torch.apps.motion import Shake
+
+
+from ams_torch.testing import shape_deviation, sphere_groom
 
 
 def test_curve_continuous_monotone_and_matches_hookean_below_transition():
@@ -59,7 +62,7 @@ def test_nonhookean_equals_hookean_below_transition(device):
         p = at.Params(integrity_model=model, integrity_transition=50.0, integrity_break=100.0)
         sim = at.Simulator(rest, p, dtype=torch.float64, device=device)
         st = sim.initial_state()
-        for pose in shake_poses(10, p.dt, dtype=torch.float64):
+        for pose in Shake().poses(10, p.dt, dtype=torch.float64):
             st = sim.step(st, pose)
         out[model] = st
     assert torch.allclose(out["hookean"].x, out["nonhookean"].x, atol=1e-12)

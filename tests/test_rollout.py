@@ -5,7 +5,9 @@ import torch
 
 import ams_torch as at
 from ams_torch.geometry.pose import Pose
-from ams_torch.testing import at_material_points, shake_poses, sphere_groom
+from ams_torch.apps.motion import Shake
+
+from ams_torch.testing import at_material_points, sphere_groom
 
 F64 = torch.float64
 FRAMES = 8
@@ -16,8 +18,7 @@ def _setup(backend="torch", colliders=True):
     cols = [at.stages.SphereCollider(radius=0.1, follow_head=True)] if colliders else None
     sim = at.Simulator(rest, at.Params(), dtype=F64, learnable=("integrity_rate", "drag"), backend=backend,
                        colliders=cols)
-    poses = shake_poses(FRAMES, 1 / 60, amplitude=0.8, frequency=2.0, translation_amplitude=(0.02, 0.0, 0.0),
-                        dtype=F64)
+    poses = Shake(amplitude=0.8, frequency=2.0, translation=(0.02, 0.0, 0.0)).poses(FRAMES, 1 / 60, dtype=F64)
     return rest, sim, poses
 
 
@@ -106,7 +107,7 @@ def test_memory_falls_with_the_segment_length():
     KiB); with segments of k frames, the 16 / k segment inputs only (a State: x, v, ghost_rest,
     sag_offset, pose, time: 3.3 KiB each)."""
     rest, sim, _ = _setup(colliders=False)
-    poses = shake_poses(16, 1 / 60, dtype=F64)
+    poses = Shake().poses(16, 1 / 60, dtype=F64)
     state_bytes = 4 * rest.numel() * 8
     sizes = {}
     for k in (0, 1, 4, 16):

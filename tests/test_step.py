@@ -8,7 +8,9 @@ import torch
 import ams_torch as at
 from ams_torch.geometry.sdf import SDFGrid
 from ams_torch.grooms.head import hanging_groom
-from ams_torch.testing import curly_strand, shake_poses, sphere_groom
+from ams_torch.apps.motion import Shake
+
+from ams_torch.testing import curly_strand, sphere_groom
 
 F64 = torch.float64
 
@@ -33,7 +35,7 @@ def test_step_has_no_graph_breaks_and_compiles_fullgraph(small_head):
     the inductor backend is in the slow test below)."""
     sim = _every_stage_sim(small_head)
     s0 = sim.initial_state()
-    poses = shake_poses(3, sim.params.dt, amplitude=1.0)
+    poses = Shake(amplitude=1.0).poses(3, sim.params.dt)
     explained = torch._dynamo.explain(sim.step)(s0, poses[0])
     assert explained.graph_break_count == 0, [r.reason for r in explained.break_reasons]
     assert explained.graph_count == 1
@@ -52,7 +54,7 @@ def test_dynamics_only_step_compiles_fullgraph(small_head):
     head, grid = small_head
     sim = at.Simulator(hanging_groom(head, 30, 12, 0.15, sdf=grid, seed=1), at.Params())
     s0 = sim.initial_state()
-    poses = shake_poses(3, sim.params.dt, amplitude=1.0)
+    poses = Shake(amplitude=1.0).poses(3, sim.params.dt)
     explained = torch._dynamo.explain(sim.step)(s0, poses[0])
     assert explained.graph_break_count == 0 and explained.graph_count == 1
     compiled = torch.compile(sim.step, fullgraph=True, backend="aot_eager")
@@ -70,7 +72,7 @@ def test_step_compiles_with_inductor(small_head):
     s0 = sim.initial_state()
     compiled = torch.compile(sim.step, fullgraph=True)
     se = sc = s0
-    for pose in shake_poses(3, sim.params.dt, amplitude=1.0):
+    for pose in Shake(amplitude=1.0).poses(3, sim.params.dt):
         se, sc = sim.step(se, pose), compiled(sc, pose)
     torch.testing.assert_close(sc.x, se.x, rtol=1e-5, atol=1e-6)
 
@@ -79,7 +81,7 @@ def test_step_compiles_with_inductor(small_head):
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_cuda_graph_capture_and_replay_equals_eager(small_head):
     sim = _every_stage_sim(small_head, device="cuda")
-    poses = shake_poses(4, sim.params.dt, amplitude=1.0, device="cuda")
+    poses = Shake(amplitude=1.0).poses(4, sim.params.dt, device="cuda")
     s0 = sim.initial_state()
     eager = s0
     for pose in poses:
@@ -114,7 +116,7 @@ def test_batched_rotated_heads_equal_one_scene_at_a_time():
     p = at.Params(integrity_model="nonhookean")
     sim = at.Simulator(rest, p, dtype=F64)
     starts = [at.Pose.from_rotvec(rv, dtype=F64) for rv in ([0.0, 0.0, 0.0], [1.2, 0.0, 0.0], [0.0, 0.4, -0.9])]
-    motions = [shake_poses(40, p.dt, amplitude=0.8, frequency=1.5, axis=ax, dtype=F64)
+    motions = [Shake(amplitude=0.8, frequency=1.5, axis=ax).poses(40, p.dt, dtype=F64)
                for ax in ((0.0, 1.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0))]
     composed = [[at.Pose(q.rotation @ s.rotation, q.translation, q.linear_velocity, q.angular_velocity) for q in m]
                 for m, s in zip(motions, starts)]
@@ -152,7 +154,7 @@ def test_gradcheck_of_a_rollout_against_finite_differences():
     and x₀ (the sag-free offset depends on κ_I: gradients pass through initial_state too)."""
     rest = curly_strand(particles=6, dtype=F64).expand(2, 6, 3).clone()
     rest[1, :, 2] += 0.01
-    poses = shake_poses(3, 1 / 60, amplitude=0.5, dtype=F64)
+    poses = Shake(amplitude=0.5).poses(3, 1 / 60, dtype=F64)
 
     def rollout(kappa, drag, x0):
         sim = at.Simulator(rest, at.Params(integrity_rate=kappa, drag=drag), dtype=F64)
@@ -217,7 +219,7 @@ def test_double_moves_the_whole_model():
     sim.double()
     assert all(b.dtype in (F64, torch.bool, torch.int64) for b in sim.buffers())
     s = sim.initial_state()
-    s = sim.step(s, shake_poses(1, sim.params.dt, dtype=F64)[0])
+    s = sim.step(s, Shake().poses(1, sim.params.dt, dtype=F64)[0])
     assert s.x.dtype == F64 and s.v.dtype == F64 and s.ghost_rest.dtype == F64
     assert sim.model.colliders[0].center.dtype == F64
 
@@ -231,7 +233,7 @@ def test_state_dict_round_trip_reproduces_a_run_bit_for_bit():
     b = at.Simulator(rest, params.replace(integrity_rate=500.0, linear_density=2e-4), learnable=("drag",))
     assert len(a.state_dict()) > 10
     b.load_state_dict(a.state_dict())
-    poses = shake_poses(10, params.dt)
+    poses = Shake().poses(10, params.dt)
     sa, sb = a.initial_state(), b.initial_state()
     for pose in poses:
         sa, sb = a.step(sa, pose), b.step(sb, pose)
@@ -242,7 +244,7 @@ def test_learnable_parameters_get_gradients_and_fit():
     """learnable fields are nn.Parameters of the module; Adam on them reduces a rollout loss
     toward a target made with other values."""
     rest = sphere_groom(6, 8, seed=5, dtype=F64)
-    poses = shake_poses(8, 1 / 60, amplitude=0.8, dtype=F64)
+    poses = Shake(amplitude=0.8).poses(8, 1 / 60, dtype=F64)
     truth = at.Simulator(rest, at.Params(integrity_rate=300.0, drag=3.0), dtype=F64)
     s = truth.initial_state()
     for pose in poses:
