@@ -92,7 +92,33 @@ def pays_off(results: dict) -> list:
     return lines
 
 
-def page(results: dict, wall: str) -> str:
+def training(run: Path) -> list:
+    """A table of the learned models of a run (``run/models/<dataset>/<method>-G<g>.pt``): steps run
+    and the cap, the best validation step and loss (mm², the untrained model's for scale), and
+    whether training stopped early (validation stalled) or at the step cap (not converged)."""
+    from baselines.learned.train import load_blob
+
+    rows = []
+    for f in sorted((run / "models").glob("*/*.pt")):
+        try:
+            b = load_blob(str(f))
+        except (ValueError, OSError, RuntimeError):
+            continue
+        valid = b["history"].get("valid") or []
+        start = valid[0]["loss"] if valid else float("nan")
+        cap = b["train_options"]["steps"]
+        how = "early (validation stalled)" if b["stopped"] == "early" else (
+            "at the step cap: not converged" if b["best_step"] >= cap - b["train_options"]["valid_every"]
+            else "at the step cap (best before the last validations)")
+        rows.append(f"| {f.parent.name} | {b['method']} | {b['guides'].numel()} | {b['steps']} / {cap} | "
+                    f"{b['best_step']} | {b['best_valid']:.1f} | {start:.1f} | {how} |")
+    if not rows:
+        return []
+    return ["| dataset | method | G | steps / cap | best step | best valid loss (mm²) | untrained (mm²) | stopped |",
+            "|---|---|---|---|---|---|---|---|"] + rows
+
+
+def page(results: dict, wall: str, run_dir: Path = None) -> str:
     board = leaderboard(results).replace("](", "](baselines/")
     body = board.split("\n", 1)[1]
     run = results["runs"][-1]
@@ -106,6 +132,15 @@ def page(results: dict, wall: str) -> str:
            "sequence, then per dataset and held-out subset (why the sequences are held out: an unseen groom, "
            "motion or collider):", ""]
     out += comparisons(results) or ["- no learned method was run."]
+    table = training(run_dir) if run_dir is not None else []
+    if table:
+        out += ["", "## Training of the learned models", "",
+                "Each learned model is trained on its dataset's train split (one model per dataset and G), "
+                "validated on its valid split every `valid_every` steps with early stopping, under the step cap "
+                "of the run's `--option` flags (a compute budget: a model that stops at the cap with its best "
+                "validation at the end is not converged, and its row in the leaderboard is a lower bound on "
+                "what the method can do). Validation loss: mean squared vertex error (mm²) over the validation "
+                "windows; *untrained* is the model at step 0 (its output starts at skinning).", ""] + table
     out += ["", "## Guides simulated alone against the dense run's copies", ""]
     out += guide_gap(results) or ["- not measured in this run."]
     out += ["", "## Where does interpolation pay for itself?", ""]
@@ -127,7 +162,7 @@ def main(argv=None) -> None:
         old.unlink()
     for f in list(run.glob("*.png")) + [run / "results.json"]:
         shutil.copy2(f, docs / "baselines" / f.name)
-    (docs / "baselines.md").write_text(page(results, args.wall))
+    (docs / "baselines.md").write_text(page(results, args.wall, run))
     print(f"wrote {docs / 'baselines.md'}")
 
 
