@@ -63,6 +63,23 @@ def comparisons(results: dict, baseline: str = "skinning") -> list:
     return lines
 
 
+def ranking(results: dict) -> list:
+    """Per G: the methods that apply to every held-out sequence, best mean vertex error first
+    (guides alone); learned methods that apply to some sequences only are named apart."""
+    rows = [r for r in results["rows"] if r["guide_source"] == "alone" and r["method"] not in REFERENCE_ROWS]
+    per = summarise(rows, ("guides", "method"))
+    out = []
+    for g in sorted({k[0] for k in per}):
+        full = sorted(((m, a) for (gg, m), a in per.items() if gg == g and "mean_mm" in a and not a["not_applicable"]),
+                      key=lambda t: t[1]["mean_mm"])
+        part = [m for (gg, m), a in per.items() if gg == g and a.get("not_applicable")]
+        if full:
+            out.append(f"- G={g}: " + " < ".join(f"{m} {a['mean_mm']:.2f} mm" for m, a in full) +
+                       (f" (every held-out sequence); applicable to some sequences only: {', '.join(part)} "
+                        "(compared paired below)" if part else " (every held-out sequence)"))
+    return out
+
+
 def guide_gap(results: dict) -> list:
     """How far the guides simulated alone are from the dense run's copies (per dataset and G), and
     skinning's error with either input when both were scored."""
@@ -131,7 +148,8 @@ def page(results: dict, wall: str, run_dir: Path = None) -> str:
            "Guides simulated alone (what a game or film pipeline runs); mean vertex error over every held-out "
            "sequence, then per dataset and held-out subset (why the sequences are held out: an unseen groom, "
            "motion or collider):", ""]
-    out += comparisons(results) or ["- no learned method was run."]
+    out += ranking(results)
+    out += [""] + (comparisons(results) or ["- no learned method was run."])
     table = training(run_dir) if run_dir is not None else []
     if table:
         out += ["", "## Training of the learned models", "",
