@@ -4,7 +4,7 @@
   ``predict``, optional causal ``reset``/``step``) and the samples it is given;
   :func:`resolve_method` finds one by built-in name, ``package.module:factory`` or entry point.
 - :mod:`baselines.methods`: the built-ins that learn nothing (``rigid``, ``nearest``,
-  ``skinning``, ``skinning+pushout``); :mod:`baselines.learned`: the learned ones (``upsampler``,
+  ``skinning``, ``blend``, ``skinning+pushout``); :mod:`baselines.learned`: the learned ones (``upsampler``,
   ``temporal``, ``collision``, ``agnostic``).
 - :mod:`baselines.metrics`: fidelity against the dense simulation, each with a known-answer test.
 - :mod:`baselines.bench`: ``ams-torch bench-interp`` (datasets or suites → results.json,

@@ -6,6 +6,8 @@ the learned ones of :mod:`baselines.learned`) in :data:`baselines.protocol.BUILT
   own root by the head's rotation.
 - ``skinning``: linear hair skinning (:class:`~baselines.skinning.LinearHairSkinning`, K nearest
   guides, parallel-transported frames, the head rotation as root frame).
+- ``blend``: the K nearest guides blended as skinning weights them, each carrying the strand's rest
+  offset by the head rotation only (``nearest`` is K = 1).
 - ``skinning+pushout``: skinning, then every free vertex inside the head or a collider is pushed
   out along the SDF normal (:func:`push_out`).
 
@@ -23,7 +25,7 @@ from baselines import learned  # noqa: F401  (registers the learned methods)
 from baselines.protocol import Interpolator, register
 from baselines.skinning import LinearHairSkinning
 
-__all__ = ["Rigid", "Nearest", "Skinning", "SkinningPushOut", "push_out"]
+__all__ = ["Rigid", "Nearest", "Skinning", "Blend", "SkinningPushOut", "push_out"]
 
 
 def _world(local: torch.Tensor, rotations: torch.Tensor, translations: torch.Tensor) -> torch.Tensor:
@@ -124,6 +126,38 @@ class Skinning(_PerFrame):
         return self.skin(guides, root_rotation=rotations)
 
 
+class Blend(_PerFrame):
+    """The K nearest guides (by root distance, inverse-distance weights of power ``power``, as
+    :class:`Skinning` binds them), each carrying the strand's rest offset from it by the head
+    rotation only: x_i(t) = Σ_k w_k (g_k,i(t) + R(t)(X̄_i − X̄_k,i)). K = 1 is :class:`Nearest`.
+    Unlike skinning, a guide's own bending does not rotate the offsets."""
+
+    name = "blend"
+
+    def __init__(self, k: int = 4, power: float = 2.0, chunk: int = 256):
+        self.k, self.power, self.chunk = int(k), float(power), int(chunk)
+        self._key = None
+
+    def _prepare(self, sample: dict) -> None:
+        super()._prepare(sample)
+        rest, gi = sample["rest_positions"], sample["guide_index"]
+        key = _fingerprint(rest, gi)
+        if key != self._key:  # the same groom and guides: keep the binding
+            skin = LinearHairSkinning(rest, rest[gi], k=self.k, power=self.power).to(rest.device)
+            self._index, self._weights = skin.guide_index, skin.weights  # (S, K)
+            self._offset = rest[:, None] - rest[gi][self._index]  # (S, K, N, 3) head frame
+            self._key = key
+
+    def _frames(self, guides, rotations, translations, collider_poses):
+        out = []
+        for lo in range(0, self._index.shape[0], self.chunk):
+            idx = self._index[lo:lo + self.chunk]
+            off = torch.einsum("tij,sknj->tskni", rotations, self._offset[lo:lo + self.chunk].to(guides))
+            moved = guides[:, idx] + off  # (T, s, K, N, 3)
+            out.append((self._weights[lo:lo + self.chunk].to(guides)[None, :, :, None, None] * moved).sum(2))
+        return torch.cat(out, 1)
+
+
 def push_out(x: torch.Tensor, colliders: List, poses: Sequence, free: torch.Tensor, passes: int = 4,
              skin: float = 0.0) -> torch.Tensor:
     """Move the free vertices that are inside a collider out along its normal.
@@ -170,4 +204,5 @@ class SkinningPushOut(Skinning):
 register("rigid")(Rigid)
 register("nearest")(Nearest)
 register("skinning")(Skinning)
+register("blend")(Blend)
 register("skinning+pushout")(SkinningPushOut)

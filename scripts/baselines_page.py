@@ -63,6 +63,23 @@ def comparisons(results: dict, baseline: str = "skinning") -> list:
     return lines
 
 
+def ranking(results: dict) -> list:
+    """Per G: the methods that apply to every held-out sequence, best mean vertex error first
+    (guides alone); learned methods that apply to some sequences only are named apart."""
+    rows = [r for r in results["rows"] if r["guide_source"] == "alone" and r["method"] not in REFERENCE_ROWS]
+    per = summarise(rows, ("guides", "method"))
+    out = []
+    for g in sorted({k[0] for k in per}):
+        full = sorted(((m, a) for (gg, m), a in per.items() if gg == g and "mean_mm" in a and not a["not_applicable"]),
+                      key=lambda t: t[1]["mean_mm"])
+        part = [m for (gg, m), a in per.items() if gg == g and a.get("not_applicable")]
+        if full:
+            out.append(f"- G={g}: " + " < ".join(f"{m} {a['mean_mm']:.2f} mm" for m, a in full) +
+                       (f" (every held-out sequence); applicable to some sequences only: {', '.join(part)} "
+                        "(compared paired below)" if part else " (every held-out sequence)"))
+    return out
+
+
 def guide_gap(results: dict) -> list:
     """How far the guides simulated alone are from the dense run's copies (per dataset and G), and
     skinning's error with either input when both were scored."""
@@ -92,7 +109,33 @@ def pays_off(results: dict) -> list:
     return lines
 
 
-def page(results: dict, wall: str) -> str:
+def training(run: Path) -> list:
+    """A table of the learned models of a run (``run/models/<dataset>/<method>-G<g>.pt``): steps run
+    and the cap, the best validation step and loss (mm², the untrained model's for scale), and
+    whether training stopped early (validation stalled) or at the step cap (not converged)."""
+    from baselines.learned.train import load_blob
+
+    rows = []
+    for f in sorted((run / "models").glob("*/*.pt")):
+        try:
+            b = load_blob(str(f))
+        except (ValueError, OSError, RuntimeError):
+            continue
+        valid = b["history"].get("valid") or []
+        start = valid[0]["loss"] if valid else float("nan")
+        cap = b["train_options"]["steps"]
+        how = "early (validation stalled)" if b["stopped"] == "early" else (
+            "at the step cap: not converged" if b["best_step"] >= cap - b["train_options"]["valid_every"]
+            else "at the step cap (best before the last validations)")
+        rows.append(f"| {f.parent.name} | {b['method']} | {b['guides'].numel()} | {b['steps']} / {cap} | "
+                    f"{b['best_step']} | {b['best_valid']:.1f} | {start:.1f} | {how} |")
+    if not rows:
+        return []
+    return ["| dataset | method | G | steps / cap | best step | best valid loss (mm²) | untrained (mm²) | stopped |",
+            "|---|---|---|---|---|---|---|---|"] + rows
+
+
+def page(results: dict, wall: str, run_dir: Path = None) -> str:
     board = leaderboard(results).replace("](", "](baselines/")
     body = board.split("\n", 1)[1]
     run = results["runs"][-1]
@@ -105,7 +148,17 @@ def page(results: dict, wall: str) -> str:
            "Guides simulated alone (what a game or film pipeline runs); mean vertex error over every held-out "
            "sequence, then per dataset and held-out subset (why the sequences are held out: an unseen groom, "
            "motion or collider):", ""]
-    out += comparisons(results) or ["- no learned method was run."]
+    out += ranking(results)
+    out += [""] + (comparisons(results) or ["- no learned method was run."])
+    table = training(run_dir) if run_dir is not None else []
+    if table:
+        out += ["", "## Training of the learned models", "",
+                "Each learned model is trained on its dataset's train split (one model per dataset and G), "
+                "validated on its valid split every `valid_every` steps with early stopping, under the step cap "
+                "of the run's `--option` flags (a compute budget: a model that stops at the cap with its best "
+                "validation at the end is not converged, and its row in the leaderboard is a lower bound on "
+                "what the method can do). Validation loss: mean squared vertex error (mm²) over the validation "
+                "windows; *untrained* is the model at step 0 (its output starts at skinning).", ""] + table
     out += ["", "## Guides simulated alone against the dense run's copies", ""]
     out += guide_gap(results) or ["- not measured in this run."]
     out += ["", "## Where does interpolation pay for itself?", ""]
@@ -127,7 +180,7 @@ def main(argv=None) -> None:
         old.unlink()
     for f in list(run.glob("*.png")) + [run / "results.json"]:
         shutil.copy2(f, docs / "baselines" / f.name)
-    (docs / "baselines.md").write_text(page(results, args.wall))
+    (docs / "baselines.md").write_text(page(results, args.wall, run))
     print(f"wrote {docs / 'baselines.md'}")
 
 

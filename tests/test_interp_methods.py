@@ -33,7 +33,7 @@ def _sample(t=5, s=60, n=10, g=12, colliders=(), seed=0):
             "start": 0}, world
 
 
-@pytest.mark.parametrize("name", ["rigid", "skinning", "skinning+pushout"])
+@pytest.mark.parametrize("name", ["rigid", "skinning", "blend", "skinning+pushout"])
 def test_rigid_motion_is_reproduced_exactly(name):
     sample, world = _sample()
     method = resolve_method(name, {"device": torch.device("cpu")})
@@ -49,6 +49,23 @@ def test_nearest_reproduces_guides_and_streams():
     assert torch.allclose(out[:, sample["guide_index"]], sample["guide_positions"], atol=1e-12)
     assert torch.allclose(out, world, atol=1e-12)  # rigid motion: offsets carried by the head
     assert torch.allclose(stream(method, sample), out, atol=1e-12)
+
+
+def test_blend_reproduces_guides_is_nearest_at_k1_and_is_a_weighted_mean():
+    sample, world = _sample()
+    # the guides bend (each guide vertex i displaced by d_g,i): blend moves a strand by Σ w_k d_k,i
+    g = torch.Generator().manual_seed(1)
+    d = 0.01 * torch.randn(sample["guide_positions"].shape, generator=g, dtype=D)
+    bent = dict(sample, guide_positions=sample["guide_positions"] + d)
+    blend = resolve_method("blend")
+    out = blend.predict(bent)
+    assert torch.allclose(out[:, sample["guide_index"]], bent["guide_positions"], atol=1e-12)  # guides exact
+    w, idx = blend._weights, blend._index
+    want = world + (w[None, :, :, None, None] * d[:, idx]).sum(2)
+    assert torch.allclose(out, want, atol=1e-12)
+    one = resolve_method("blend", k=1).predict(bent)
+    assert torch.allclose(one, resolve_method("nearest").predict(bent), atol=1e-12)
+    assert torch.allclose(stream(blend, bent), out, atol=1e-12)
 
 
 def test_pushout_removes_penetration_and_keeps_the_rest():

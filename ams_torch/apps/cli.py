@@ -464,7 +464,7 @@ def _parser() -> argparse.ArgumentParser:
     bp.add_argument("source", help="a dataset (folder or file) of `generate`, or a suite of datasets/bench/ "
                     "(mini, standard, full), generated into OUT/data first")
     bp.add_argument("--methods", required=True, help="comma-separated: built-in names (rigid, nearest, skinning, "
-                    "skinning+pushout, upsampler, temporal, collision, agnostic), package.module:factory, or entry "
+                    "blend, skinning+pushout, upsampler, temporal, collision, agnostic), package.module:factory, or entry "
                     "points of the group ams_torch.interpolators")
     bp.add_argument("--guides", required=True, help="comma-separated guide counts, e.g. 64,256")
     bp.add_argument("--out", required=True, help="output folder (results.json, leaderboard.md, plots, models/)")
