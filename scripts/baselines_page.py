@@ -138,10 +138,17 @@ def training(run: Path) -> list:
 def page(results: dict, wall: str, run_dir: Path = None) -> str:
     board = leaderboard(results).replace("](", "](baselines/")
     body = board.split("\n", 1)[1]
-    run = results["runs"][-1]
     out = ["# Guide-strand interpolation: the benchmark", "",
-           f"Generated from the `standard` suite (`datasets/bench/`) by `{' '.join(run.get('command') or [])}`"
-           f"{f' ({wall})' if wall else ''}, then `python scripts/baselines_page.py`. Raw rows: "
+           "Generated from the `standard` suite (`datasets/bench/`) by these `bench-interp` runs into one "
+           "output folder (each resumes the rows already there, so later runs add methods, guide counts or "
+           "the cost measurement):", ""]
+    seen = []
+    for r in results["runs"]:
+        cmd = " ".join(r.get("command") or [])
+        if cmd and cmd not in seen:
+            seen.append(cmd)
+            out.append(f"- `{cmd}` (commit {str(r.get('commit', '?'))[:10]}, {r.get('date', '?')})")
+    out += ["", f"{f'({wall}) ' if wall else ''}Then `python scripts/baselines_page.py`. Raw rows: "
            "`docs/baselines/results.json`. How to run it and plug in your own method: README, section "
            "*The interpolation benchmark*.", "",
            "## Against skinning: which methods beat it, and where", "",
