@@ -31,7 +31,17 @@ def _subset(r: dict) -> str:
                          " (by the split's shares)" if r["split"] == "test" else "")
 
 
-def comparisons(results: dict, baseline: str = "skinning") -> list:
+def best_simple(results: dict) -> str:
+    """The method without training with the lowest mean error over every held-out sequence (guides
+    alone, every G), or ''."""
+    rows = [r for r in results["rows"] if r["guide_source"] == "alone" and r["method"] not in REFERENCE_ROWS
+            and r["method"] not in LEARNED and r["method"] != "rigid"]
+    per = summarise(rows, ("method",))
+    ranked = sorted((a["mean_mm"], m) for (m,), a in per.items() if "mean_mm" in a and not a["not_applicable"])
+    return ranked[0][1] if ranked else ""
+
+
+def comparisons(results: dict, baseline: str = "skinning", only=None) -> list:
     """Sentences: each method against ``baseline`` (guides alone), paired on the sequences both
     scored (a learned model is not applicable to grooms of another particle count), overall per G
     and per dataset × held-out subset × G ("where")."""
@@ -39,7 +49,8 @@ def comparisons(results: dict, baseline: str = "skinning") -> list:
     seq = lambda r: (r["dataset"], r["split"], r["guides"], r["sequence"])  # noqa: E731
     base = {seq(r): r for r in rows if r["method"] == baseline and "mean_mm" in r}
     lines = []
-    for m in [m for m in dict.fromkeys(r["method"] for r in rows) if m not in REFERENCE_ROWS and m != baseline]:
+    for m in [m for m in dict.fromkeys(r["method"] for r in rows) if m not in REFERENCE_ROWS and m != baseline
+              and (only is None or m in only)]:
         mine = [r for r in rows if r["method"] == m]
         scored = [r for r in mine if "mean_mm" in r and seq(r) in base]
         paired = scored + [dict(base[seq(r)], method=baseline) for r in scored]
@@ -157,6 +168,14 @@ def page(results: dict, wall: str, run_dir: Path = None) -> str:
            "motion or collider):", ""]
     out += ranking(results)
     out += [""] + (comparisons(results) or ["- no learned method was run."])
+    best = best_simple(results)
+    if best and best != "skinning":
+        learned = [m for m in dict.fromkeys(r["method"] for r in results["rows"]) if m in LEARNED]
+        if learned:
+            out += ["", f"## The learned models against the best method that learns nothing ({best})", "",
+                    f"`{best}` has the lowest mean error of the methods without training (over every held-out "
+                    "sequence, every G); the learned models paired with it on the sequences they apply to:", ""]
+            out += comparisons(results, baseline=best, only=learned)
     table = training(run_dir) if run_dir is not None else []
     if table:
         out += ["", "## Training of the learned models", "",
