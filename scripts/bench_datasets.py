@@ -51,6 +51,7 @@ from ams_torch._bench import machine, machine_info, shown_args  # noqa: E402
 from ams_torch.apps.data import HairSequenceDataset  # noqa: E402
 from ams_torch.apps.data.format import (FRAME_DIGESTS, FRAMED, SEQ_PREFIX, array_digest,  # noqa: E402
                                          sequence_checksum)
+from ams_torch.apps.data.metadata import ATTRS_DIGEST, attrs_digest  # noqa: E402
 from ams_torch.apps.datagen import generate  # noqa: E402
 from ams_torch.apps.recipe import parse_recipe  # noqa: E402
 
@@ -184,6 +185,7 @@ def copy_with_storage(src: str, dst: str, precision: str, compression: str) -> N
                     out = g[key]
                 digests[key] = (out.dtype.str, out.shape, out.attrs["sha256"])
             g.attrs["checksum"] = sequence_checksum(digests)
+            g.attrs[ATTRS_DIGEST] = attrs_digest(g.attrs)  # the attributes' digest covers the new checksum
 
 
 def read_throughput(folder: str, workers: int, seconds: float, window: int = 8, batch_size: int = 4) -> dict:

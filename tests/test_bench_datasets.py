@@ -34,3 +34,28 @@ def test_bench_datasets_ray_section(tmp_path):
     rays = json.loads((tmp_path / "datasets.json").read_text())["ray"]
     assert [r["workers"] for r in rays] == [1, 2] and rays[0]["speedup"] == 1.0 and all(r["seconds"] > 0 for r in rays)
     assert "## The Ray backend" in (tmp_path / "datasets.md").read_text()
+
+
+def test_storage_copies_read_and_verify(tmp_path):
+    """The read section's float16 / lzf / uncompressed copies of a generated file read and verify
+    (checksums and the attributes' digest recomputed), and float16 rounds within 2⁻¹¹ relative."""
+    import numpy as np
+    import torch
+    from learned_data import toy_dataset
+
+    from ams_torch.apps.data import HairSequenceDataset, validate
+
+    bench = load_script("bench_datasets")
+    src = toy_dataset(tmp_path / "src", sequences=2, frames=4, batch=2, strands=12, particles=6, guides=4,
+                      split=(1.0, 0.0, 0.0))
+    base = HairSequenceDataset(src, window=None, verify="always")
+    for prec, comp in (("float16", "gzip"), ("float32", "lzf"), ("float32", "none")):
+        out = tmp_path / f"{prec}-{comp}"
+        out.mkdir()
+        for f in sorted((tmp_path / "src").glob("*.h5")):
+            bench.copy_with_storage(str(f), str(out / f.name), prec, comp)
+        assert validate(str(out)).ok, validate(str(out))
+        ds = HairSequenceDataset(str(out), window=None, verify="always")
+        a, b = ds[0]["positions"], base[0]["positions"]
+        tol = 2.0 ** -11 * float(b.abs().max()) if prec == "float16" else 0.0
+        assert torch.allclose(a.float(), b.float(), atol=tol, rtol=0) and np.isfinite(a.numpy()).all()
