@@ -245,6 +245,14 @@ def render(records: list, memory: list, meta: dict, out: Path) -> None:
                 ratio = r["backward_ms"] / r["forward_nograd_ms"]
                 lines.append(f"| backward of a native frame / its native forward, {scene}, 1k × 32 | ≤ {goal:g}× | "
                              f"{ratio:.1f}× ({'met' if ratio <= goal else 'not met'}) |")
+    lines += ["", "Why every stage misses: only the strand dynamics have a native adjoint "
+              "(`ams_torch.native_status()[\"gradients\"]`). A gradient frame runs the hair–hair grid, the collisions, "
+              "the frame's finish and the plastic yield on the torch definition, and with the default "
+              "`Params(contact=\"substep\")` and colliders the dynamics too (the substep contact has no native adjoint): "
+              "the forward with grad then costs what the torch path costs, and its backward is the torch path's "
+              "backward. The dynamics-only scene, which is all native, meets its target. Native adjoints of the "
+              "collisions, the grid (P2G, pressure over the occupied cells, G2P), the finish, the yield and the "
+              "substep contact are what would close the gap (issue 25, item 1)."]
     if memory:
         lines += ["", f"## Memory: one loss + backward of a {memory[0]['frames']}-frame rollout (every stage, "
                   f"{memory[0]['S']:,} × 32)", "",
@@ -255,6 +263,10 @@ def render(records: list, memory: list, meta: dict, out: Path) -> None:
         for m in memory:
             lines.append(f"| {m['path']} | {m['checkpoint_every']} | {m['peak_rise_MiB']:.1f} | {m['state_MiB']:.2f} | "
                          f"{m['wall_s']:.1f} |")
+        lines += ["", "The goal was under 64 MiB beyond the states with checkpointing. Checkpointing bounds what is "
+                  "kept to one segment of k frames, but inside a segment every frame keeps the torch definition's "
+                  "saved tensors of every stage (see above: a gradient frame of every stage runs on the torch "
+                  "definition), about 170 MiB a frame at 1,000 × 32; k = 1 would bound it to one frame's."]
     if meta.get("note"):
         lines += ["", meta["note"]]
     out.parent.mkdir(parents=True, exist_ok=True)
