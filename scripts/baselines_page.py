@@ -91,6 +91,44 @@ def ranking(results: dict) -> list:
     return out
 
 
+def summary(results: dict) -> list:
+    """The page's answers in a few lines: the best method without training per G, the learned models
+    against it and against skinning (paired), and at which sizes which methods pay for themselves."""
+    out = []
+    rows = [r for r in results["rows"] if r["guide_source"] == "alone" and r["method"] not in REFERENCE_ROWS]
+    per = summarise(rows, ("guides", "method"))
+    best = best_simple(results)
+    for g in sorted({k[0] for k in per}):
+        if (g, best) in per and (g, "skinning") in per:
+            out.append(f"- G={g}: `{best}` is the most accurate method without training, {per[(g, best)]['mean_mm']:.2f} mm "
+                       f"mean vertex error against skinning's {per[(g, 'skinning')]['mean_mm']:.2f} mm over all "
+                       f"{per[(g, best)]['sequences']} held-out sequences.")
+    learned = [m for m in dict.fromkeys(r["method"] for r in rows) if m in LEARNED]
+    if learned and best:
+        seq = lambda r: (r["dataset"], r["split"], r["guides"], r["sequence"])  # noqa: E731
+        idx = {(seq(r), r["method"]): r["mean_mm"] for r in rows if "mean_mm" in r}
+        for m in learned:
+            mine = [k for (k, mm) in idx if mm == m]
+            if not mine:
+                continue
+            for base in ("skinning", best):
+                pairs = [(idx[(k, m)], idx[(k, base)]) for k in mine if (k, base) in idx]
+                wins = sum(a < b for a, b in pairs)
+                out.append(f"- `{m}` is better than `{base}` on "
+                           f"{wins} of {len(pairs)} sequences it applies to "
+                           f"({sum(a for a, _ in pairs) / len(pairs):.2f} vs {sum(b for _, b in pairs) / len(pairs):.2f} mm).")
+    sizes = sorted({c["strands"] for c in results.get("cost") or []})
+    for sz in sizes:
+        cs = [c for c in results["cost"] if c["strands"] == sz and c["total_ms"] is not None]
+        if not cs:
+            continue
+        pay = [f"`{c['method']}` {c['speedup']:.1f}×" for c in sorted(cs, key=lambda c: -c["speedup"]) if c["speedup"] > 1]
+        no = [f"`{c['method']}`" for c in cs if c["speedup"] <= 1]
+        out.append(f"- S = {sz:,} (dense {cs[0]['dense_ms']:.0f} ms/frame on {cs[0]['device']}): pays for itself: "
+                   f"{', '.join(pay) or 'none'}; does not: {', '.join(no) or 'none'}.")
+    return out
+
+
 def guide_gap(results: dict) -> list:
     """How far the guides simulated alone are from the dense run's copies (per dataset and G), and
     skinning's error with either input when both were scored."""
@@ -162,7 +200,15 @@ def page(results: dict, wall: str, run_dir: Path = None) -> str:
     out += ["", f"{f'({wall}) ' if wall else ''}Then `python scripts/baselines_page.py`. Raw rows: "
            "`docs/baselines/results.json`. How to run it and plug in your own method: README, section "
            "*The interpolation benchmark*.", "",
-           "## Against skinning: which methods beat it, and where", "",
+           "## In short", ""]
+    out += summary(results)
+    out += ["", "Read the learned rows with their budget: each model was trained under the run's step cap (the "
+            "*Training* table says which stopped at it, not converged), each takes one particle count N (the "
+            "largest group of its train split; the suite mixes N = 8–40), so it is scored on the sequences of that "
+            "N only, and every learned model here starts from skinning's output, which `blend` and `nearest` beat. "
+            "Cost rows: the guide counts given to the cost run, on the CPU; a GPU changes the learned models' cost "
+            "most."]
+    out += ["", "## Against skinning: which methods beat it, and where", "",
            "Guides simulated alone (what a game or film pipeline runs); mean vertex error over every held-out "
            "sequence, then per dataset and held-out subset (why the sequences are held out: an unseen groom, "
            "motion or collider):", ""]
