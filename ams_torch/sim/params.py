@@ -18,11 +18,11 @@ __all__ = ["Params", "PARAM_PRESETS", "PAPER_UNITS"]
 #: :class:`~ams_torch.Simulator`, and the hair–hair grid resolution R (``HairHair(resolution=R)``)
 #: where the scene has hair–hair interaction.
 PARAM_PRESETS = {
-    "fast": {"params": {"substeps": 2},
+    "fast": {"params": {"substeps": 1},
              "settings": {"particles": 16, "dtype": "float32", "hair_hair_resolution": 32}},
     "balanced": {"params": {"substeps": 4},
                  "settings": {"particles": 32, "dtype": "float32", "hair_hair_resolution": 32}},
-    "accurate": {"params": {"substeps": 4},
+    "accurate": {"params": {"substeps": 8},
                  "settings": {"particles": 64, "dtype": "float32", "hair_hair_resolution": 32}},
 }
 
