@@ -22,6 +22,7 @@
 #include "banded/banded_simd.h"
 #include "frame/frame_adjoint.h"
 #include "frame/frame_adjoint_binding.h"
+#include "frame/strand_scratch_cpu.h"
 #include "common/interleave.h"
 #include "common/thread_scratch.h"
 
@@ -29,31 +30,11 @@ namespace ams_torch {
 namespace frame {
 namespace {
 
-// Offsets (in values per lane) of one strand's arrays in the scratch.
-struct AdjointLayout {
-  int64_t rest, mass, drag, stiffness[3], rest_length[3], integrity, angular, segment, pinned;
-  int64_t x, v, ghost_rest, sag_offset, ext, a, b, force, ghost, ghost_velocity;
+// The forward's strand layout, then the adjoint's arrays (the forward only uses the part before hist_x).
+struct AdjointLayout : StrandLayout {
   int64_t hist_x, hist_v, xb, vb, xb_new, vb_new, lam, ya, yb, wb, vpb, gb, extb, massb, dragb, integrityb;
-  int64_t stiffb[3], angularb, poseb, sagb, lawb, total;
-  AdjointLayout(int64_t n, int64_t m) {
-    int64_t o = 0;
-    auto take = [&o](int64_t count) {
-      const int64_t at = o;
-      o += count;
-      return at;
-    };
-    rest = take(3 * n);
-    mass = take(n);
-    drag = take(n);
-    for (int k = 0; k < 3; ++k) stiffness[k] = take(n - 1 - k);
-    for (int k = 0; k < 3; ++k) rest_length[k] = take(n - 1 - k);
-    integrity = take(n);
-    angular = take(n - 1);
-    segment = take(n);
-    pinned = take(1);
-    for (int64_t* f : {&x, &v, &ghost_rest, &sag_offset, &ext}) *f = take(3 * n);
-    a = take(banded::kRowElems * n);
-    for (int64_t* f : {&b, &force, &ghost, &ghost_velocity}) *f = take(3 * n);
+  int64_t stiffb[3], angularb, poseb, sagb, lawb;
+  AdjointLayout(int64_t n, int64_t m) : StrandLayout(n) {
     hist_x = take(3 * n * (m + 1));
     hist_v = take(3 * n * (m + 1));
     for (int64_t* f : {&xb, &vb, &xb_new, &vb_new, &lam, &ya, &yb, &wb, &vpb, &gb, &extb}) *f = take(3 * n);
@@ -63,7 +44,6 @@ struct AdjointLayout {
     poseb = take(int64_t(kPoseElems) * (m + 1));
     sagb = take(3 * n);
     lawb = take(3);
-    total = o;
   }
 };
 
@@ -82,35 +62,13 @@ void run_posed(const FrameArgs<T>& args, const FrameSettings& cfg, const T* pose
   const AdjointLayout lay(N, M);
   const int64_t groups = (S + W - 1) / W;
   const bool has_ext = args.external_force != nullptr;
-  const bool nonhookean = cfg.integrity_model == kIntegrityNonHookean;
   const size_t bytes = size_t((ap ? lay.total : lay.hist_x) * W) * sizeof(T);
 
   at::parallel_for(0, B * groups, 1, [&](int64_t t_begin, int64_t t_end) {
     T* sc = static_cast<T*>(ams_torch::thread_scratch(bytes, "frame adjoint"));
     auto view = [&](int64_t offset) { return Lanes<V, T>{sc + offset * W, W}; };
     Strand<V, T> st;
-    st.n = N;
-    st.rest = view(lay.rest);
-    st.mass = view(lay.mass);
-    st.drag = view(lay.drag);
-    for (int k = 0; k < 3; ++k) {
-      st.stiffness[k] = view(lay.stiffness[k]);
-      st.rest_length[k] = view(lay.rest_length[k]);
-    }
-    st.integrity = view(lay.integrity);
-    st.angular = view(lay.angular);
-    st.segment = view(lay.segment);
-    st.x = view(lay.x);
-    st.v = view(lay.v);
-    st.ghost_rest = view(lay.ghost_rest);
-    st.sag_offset = view(lay.sag_offset);
-    st.ext = view(lay.ext);
-    st.has_ext = has_ext;
-    st.a = view(lay.a);
-    st.b = view(lay.b);
-    st.force = view(lay.force);
-    st.ghost = view(lay.ghost);
-    st.ghost_velocity = view(lay.ghost_velocity);
+    bind_strand(st, sc, lay, N, has_ext);
     Adjoint<V, T> adj;
     if (ap) {
       adj.hist_x = view(lay.hist_x);
@@ -141,39 +99,7 @@ void run_posed(const FrameArgs<T>& args, const FrameSettings& cfg, const T* pose
       const int64_t lanes = std::min<int64_t>(W, S - s0);
       int64_t strand[W];
       for (int64_t l = 0; l < W; ++l) strand[l] = std::min(s0 + l, S - 1); // pad with a real strand
-      const T* src[W];
-      auto gather_model = [&](const T* base, int64_t per_strand, int64_t offset) {
-        for (int64_t l = 0; l < W; ++l) src[l] = base + strand[l] * per_strand;
-        interleave<T, W>(sc + offset * W, src, per_strand);
-      };
-      auto gather_scene = [&](const T* base, int64_t offset) {
-        for (int64_t l = 0; l < W; ++l) src[l] = base + (b * S + strand[l]) * 3 * N;
-        interleave<T, W>(sc + offset * W, src, 3 * N);
-      };
-      gather_model(args.rest_positions, 3 * N, lay.rest);
-      gather_model(args.mass, N, lay.mass);
-      gather_model(args.drag, N, lay.drag);
-      for (int k = 0; k < 3; ++k) {
-        gather_model(args.stiffness[k], N - 1 - k, lay.stiffness[k]);
-        gather_model(args.rest_length[k], N - 1 - k, lay.rest_length[k]);
-      }
-      if (cfg.integrity_model != kIntegrityNone) gather_model(args.integrity, N, lay.integrity);
-      if (cfg.angular) gather_model(args.angular, N - 1, lay.angular);
-      if (nonhookean) gather_model(args.segment_length, N, lay.segment);
-      gather_scene(args.x, lay.x);
-      gather_scene(args.v, lay.v);
-      gather_scene(args.ghost_rest, lay.ghost_rest);
-      if (nonhookean) gather_scene(args.sag_offset, lay.sag_offset);
-      if (has_ext) gather_scene(args.external_force, lay.ext);
-      T* pinned = sc + lay.pinned * W;
-      int64_t pinned_max = 0;
-      for (int64_t l = 0; l < W; ++l) {
-        const int64_t p = std::min<int64_t>(std::max<int64_t>(args.num_pinned[strand[l]], 0), N);
-        pinned[l] = T(p);
-        pinned_max = std::max(pinned_max, p);
-      }
-      st.pinned = *reinterpret_cast<const V*>(pinned);
-      st.pinned_max = int(pinned_max);
+      gather_strands(args, cfg, lay, sc, b, strand, st);
       const T* scene_poses = poses + (pose_scenes == 1 ? 0 : b) * (M + 1) * kPoseElems;
       T* dst[W];
       auto scatter = [&](T* base, int64_t per_strand, int64_t offset) {
@@ -186,8 +112,8 @@ void run_posed(const FrameArgs<T>& args, const FrameSettings& cfg, const T* pose
         scatter(out_v, 3 * N, lay.v);
         continue;
       }
-      gather_scene(ap->xb_in, lay.xb);
-      gather_scene(ap->vb_in, lay.vb);
+      gather_scene_array<T, W>(sc, lay.xb, ap->xb_in, b, strand, S, N);
+      gather_scene_array<T, W>(sc, lay.vb, ap->vb_in, b, strand, S, N);
       strand_frame_adjoint(st, adj, mat, cfg, scene_poses);
       scatter(ap->xb, 3 * N, lay.xb);
       scatter(ap->vb, 3 * N, lay.vb);

@@ -31,6 +31,7 @@
 #include "frame/contact_binding.h"
 #include "frame/frame.h"
 #include "frame/frame_binding.h"
+#include "frame/strand_scratch_cpu.h"
 #include "common/interleave.h"
 #include "common/thread_scratch.h"
 
@@ -39,40 +40,6 @@ namespace frame {
 namespace {
 
 constexpr const char* kOp = "ams_torch_frame_cpu::frame";
-
-// Offsets (in values per lane) of the arrays of one strand in the scratch.
-struct Layout {
-  int64_t rest, mass, drag, stiffness[3], rest_length[3], integrity, angular, segment, pinned;
-  int64_t x, v, ghost_rest, sag_offset, ext, a, b, force, ghost, ghost_velocity, total;
-  explicit Layout(int64_t n) {
-    int64_t o = 0;
-    auto take = [&o](int64_t count) {
-      const int64_t at = o;
-      o += count;
-      return at;
-    };
-    rest = take(3 * n);
-    mass = take(n);
-    drag = take(n);
-    for (int k = 0; k < 3; ++k) stiffness[k] = take(n - 1 - k);
-    for (int k = 0; k < 3; ++k) rest_length[k] = take(n - 1 - k);
-    integrity = take(n);
-    angular = take(n - 1);
-    segment = take(n);
-    pinned = take(1);
-    x = take(3 * n);
-    v = take(3 * n);
-    ghost_rest = take(3 * n);
-    sag_offset = take(3 * n);
-    ext = take(3 * n);
-    a = take(banded::kRowElems * n);
-    b = take(3 * n);
-    force = take(3 * n);
-    ghost = take(3 * n);
-    ghost_velocity = take(3 * n);
-    total = o;
-  }
-};
 
 using banded::deinterleave;
 using banded::interleave;
@@ -90,9 +57,8 @@ void run_frame(const FrameArgs<T>& args, const FrameSettings& cfg, int64_t assem
       substep_pose(args, b, int(k), int(M), cfg.hermite, cfg.dt, poses.data() + (b * (M + 1) + k) * kPoseElems);
   const Material<T> mat{{args.gravity[0], args.gravity[1], args.gravity[2]}, *args.transition, *args.breaking,
                         *args.soft_ratio};
-  const Layout lay(N);
+  const StrandLayout lay(N);
   const int64_t groups = (S + W - 1) / W;
-  const bool nonhookean = cfg.integrity_model == kIntegrityNonHookean;
   const bool has_ext = args.external_force != nullptr;
   // substep contact: every scene's colliders prepared for every substep, [scene][substep][collider]
   const int64_t C = contact != nullptr ? contact->count : 0;
@@ -104,69 +70,15 @@ void run_frame(const FrameArgs<T>& args, const FrameSettings& cfg, int64_t assem
 
   at::parallel_for(0, B * groups, 1, [&](int64_t t_begin, int64_t t_end) {
     T* sc = static_cast<T*>(ams_torch::thread_scratch(size_t(lay.total * W) * sizeof(T), "frame"));
-    auto view = [&](int64_t offset) { return Lanes<V, T>{sc + offset * W, W}; };
     Strand<V, T> st;
-    st.n = N;
-    st.rest = view(lay.rest);
-    st.mass = view(lay.mass);
-    st.drag = view(lay.drag);
-    for (int k = 0; k < 3; ++k) {
-      st.stiffness[k] = view(lay.stiffness[k]);
-      st.rest_length[k] = view(lay.rest_length[k]);
-    }
-    st.integrity = view(lay.integrity);
-    st.angular = view(lay.angular);
-    st.segment = view(lay.segment);
-    st.x = view(lay.x);
-    st.v = view(lay.v);
-    st.ghost_rest = view(lay.ghost_rest);
-    st.sag_offset = view(lay.sag_offset);
-    st.ext = view(lay.ext);
-    st.has_ext = has_ext;
-    st.a = view(lay.a);
-    st.b = view(lay.b);
-    st.force = view(lay.force);
-    st.ghost = view(lay.ghost);
-    st.ghost_velocity = view(lay.ghost_velocity);
+    bind_strand(st, sc, lay, N, has_ext);
 
     for (int64_t task = t_begin; task < t_end; ++task) {
       const int64_t b = task / groups, s0 = (task % groups) * W;
       const int64_t lanes = std::min<int64_t>(W, S - s0);
       int64_t strand[W];
       for (int64_t l = 0; l < W; ++l) strand[l] = std::min(s0 + l, S - 1); // pad with a real strand
-      const T* src[W];
-      auto gather_model = [&](const T* base, int64_t per_strand, int64_t offset) {
-        for (int64_t l = 0; l < W; ++l) src[l] = base + strand[l] * per_strand;
-        interleave<T, W>(sc + offset * W, src, per_strand);
-      };
-      auto gather_scene = [&](const T* base, int64_t offset) {
-        for (int64_t l = 0; l < W; ++l) src[l] = base + (b * S + strand[l]) * 3 * N;
-        interleave<T, W>(sc + offset * W, src, 3 * N);
-      };
-      gather_model(args.rest_positions, 3 * N, lay.rest);
-      gather_model(args.mass, N, lay.mass);
-      gather_model(args.drag, N, lay.drag);
-      for (int k = 0; k < 3; ++k) {
-        gather_model(args.stiffness[k], N - 1 - k, lay.stiffness[k]);
-        gather_model(args.rest_length[k], N - 1 - k, lay.rest_length[k]);
-      }
-      if (cfg.integrity_model != kIntegrityNone) gather_model(args.integrity, N, lay.integrity);
-      if (cfg.angular) gather_model(args.angular, N - 1, lay.angular);
-      if (nonhookean) gather_model(args.segment_length, N, lay.segment);
-      gather_scene(args.x, lay.x);
-      gather_scene(args.v, lay.v);
-      gather_scene(args.ghost_rest, lay.ghost_rest);
-      if (nonhookean) gather_scene(args.sag_offset, lay.sag_offset);
-      if (has_ext) gather_scene(args.external_force, lay.ext);
-      T* pinned = sc + lay.pinned * W;
-      int64_t pinned_max = 0;
-      for (int64_t l = 0; l < W; ++l) {
-        const int64_t p = std::min<int64_t>(std::max<int64_t>(args.num_pinned[strand[l]], 0), N);
-        pinned[l] = T(p);
-        pinned_max = std::max(pinned_max, p);
-      }
-      st.pinned = *reinterpret_cast<const V*>(pinned);
-      st.pinned_max = int(pinned_max);
+      gather_strands(args, cfg, lay, sc, b, strand, st);
       const T* scene_poses = poses.data() + b * (M + 1) * kPoseElems;
       T* dst[W];
       if (assemble_substep >= 0) {
