@@ -2,6 +2,7 @@
 measured on, and device-synchronised timing. Not part of the public API."""
 from __future__ import annotations
 
+import contextlib
 import os
 import platform
 import statistics
@@ -48,6 +49,20 @@ def sync(device) -> None:
     device = torch.device(device)
     if device.type == "cuda":
         torch.cuda.synchronize(device)
+
+
+def stage_timer(device, acc: dict):
+    """A ``timer(name)`` context manager for ``Simulator(stage_timer=...)``: adds each stage's
+    wall time (s, device synchronised before and after) to ``acc[name]``."""
+    @contextlib.contextmanager
+    def timer(name):
+        sync(device)
+        t = time.perf_counter()
+        yield
+        sync(device)
+        acc[name] = acc.get(name, 0.0) + time.perf_counter() - t
+
+    return timer
 
 
 def median_ms(fn: Callable[[], object], device="cpu", repeats: int = 5, time_cap: float = 20.0,

@@ -38,7 +38,6 @@ costs alone. ``--system-malloc`` measures with glibc's defaults. JSON records:
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import statistics
@@ -52,7 +51,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import ams_torch as at  # noqa: E402
-from ams_torch._bench import machine, machine_info, shown_args, sync  # noqa: E402
+from ams_torch._bench import machine, machine_info, shown_args, stage_timer, sync  # noqa: E402
 from ams_torch.geometry.sdf import SDFGrid  # noqa: E402
 from ams_torch.grooms.head import hanging_groom  # noqa: E402
 from ams_torch.apps.motion import Shake  # noqa: E402
@@ -95,18 +94,6 @@ def build_case(scene: str, strands: int, device, dtype, resolution: int, head, g
                                 backend=p) for p in PATHS}
     poses = Shake(amplitude=0.6, frequency=1.5).poses(240, 1 / 60, device=device, dtype=dtype)
     return {"sims": sims, "states": {p: s.initial_state() for p, s in sims.items()}, "poses": poses, "k": 0}
-
-
-def _stage_timer(device, acc: dict):
-    @contextlib.contextmanager
-    def timer(name):
-        sync(device)
-        t = time.perf_counter()
-        yield
-        sync(device)
-        acc[name] = acc.get(name, 0.0) + time.perf_counter() - t
-
-    return timer
 
 
 def frame(case: dict, path: str, device, timer=None) -> float:
@@ -218,7 +205,7 @@ def run_case(scene: str, strands: int, args, head, grid, paths) -> list:
     for rep in range(args.reps):
         for path in paths:
             acc = {}
-            times[path].append(frame(case, path, device, _stage_timer(device, acc)))
+            times[path].append(frame(case, path, device, stage_timer(device, acc)))
             for k, v in acc.items():
                 stages[path].setdefault(k, []).append(v * 1e3)
         case["k"] += 1

@@ -30,7 +30,6 @@ Target: ≤ 64 MiB beyond the states with checkpointing.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import math
 import os
@@ -46,7 +45,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import ams_torch as at  # noqa: E402
-from ams_torch._bench import machine, machine_info, shown_args, sync  # noqa: E402
+from ams_torch._bench import machine, machine_info, shown_args, stage_timer, sync  # noqa: E402
 from ams_torch.geometry.sdf import SDFGrid  # noqa: E402
 from ams_torch.grooms.head import hanging_groom  # noqa: E402
 from ams_torch.apps.motion import Shake  # noqa: E402
@@ -68,18 +67,6 @@ def build_sim(scene: str, strands: int, path: str, device, dtype, resolution: in
                         colliders=[at.MeshCollider(grid)] if every else None)
 
 
-def _stage_timer(device, acc: dict):
-    @contextlib.contextmanager
-    def timer(name):
-        sync(device)
-        t = time.perf_counter()
-        yield
-        sync(device)
-        acc[name] = acc.get(name, 0.0) + time.perf_counter() - t
-
-    return timer
-
-
 def grad_frame(case: dict, path: str, device) -> dict:
     """One frame of one path with autograd, then its backward; the state moves on (detached).
     Returns {"forward": ms, "backward": ms, stage: ms ...}."""
@@ -89,7 +76,7 @@ def grad_frame(case: dict, path: str, device) -> dict:
     acc = {}
     sync(device)
     t0 = time.perf_counter()
-    new = sim.step(state.replace(x=x), pose, timer=_stage_timer(device, acc))
+    new = sim.step(state.replace(x=x), pose, timer=stage_timer(device, acc))
     sync(device)
     t1 = time.perf_counter()
     loss = (case["w"] * new.x).sum() + 1e-2 * (case["w"] * new.v).sum()
