@@ -304,6 +304,7 @@ def run(source: str, methods: Sequence[str], guides: Sequence[int], out: str, *,
             for spec in methods:
                 method = _fitted(spec, name, path, int(g), info, outp, train, retrain, device, options.get(spec, {}),
                                  log)
+                _drop_other_models(results, done, name, spec, int(g), getattr(method, "model_id", None), log)
                 for src in sources:
                     for split in held_out:
                         _score_split(method, spec, name, path, split, int(g), src, device, results, done,
@@ -352,6 +353,24 @@ def _fitted(spec: str, name: str, path: Path, g: int, info: dict, outp: Path, tr
     if learned:
         log(f"  {spec} ready in {time.perf_counter() - t0:.1f} s")
     return method
+
+
+def _drop_other_models(results: dict, done: set, name: str, spec: str, g: int, model: Optional[str],
+                       log: Callable[[str], None]) -> None:
+    """Forget the rows of ``spec`` on dataset ``name`` with G guides that another trained model
+    scored (e.g. before training resumed under a larger step cap), so they are scored again with
+    ``model`` (a learned method's ``model_id``; None: nothing to check)."""
+    if model is None:
+        return
+    stale = [r for r in results["rows"] if r["dataset"] == name and r["method"] == spec and r["guides"] == g
+             and r.get("model") != model]
+    if not stale:
+        return
+    log(f"  {spec} on {name} (G = {g}): {len(stale)} rows came from another trained model; scoring them again")
+    ids = {id(r) for r in stale}
+    results["rows"] = [r for r in results["rows"] if id(r) not in ids]
+    for r in stale:
+        done.discard(_key(r))
 
 
 #: results.json is rewritten at most this often while a split is scored (and at the end of each

@@ -212,7 +212,12 @@ def stream(method: Interpolator, sample: dict) -> torch.Tensor:
 
 
 def describe(method: Interpolator) -> Dict[str, Optional[str]]:
-    """name, class, causal and learned flags of a method, for results files."""
+    """name, class, causal and learned flags of a method, for results files; ``model`` too when the
+    method says which trained weights predict (``model_id``)."""
     cls = type(method)
-    return {"name": getattr(method, "name", cls.__name__), "class": f"{cls.__module__}.{cls.__qualname__}",
-            "causal": bool(getattr(method, "causal", False)), "learned": bool(getattr(method, "learned", False))}
+    out = {"name": getattr(method, "name", cls.__name__), "class": f"{cls.__module__}.{cls.__qualname__}",
+           "causal": bool(getattr(method, "causal", False)), "learned": bool(getattr(method, "learned", False))}
+    model = getattr(method, "model_id", None)
+    if model is not None:  # which trained weights (learned methods)
+        out["model"] = str(model)
+    return out

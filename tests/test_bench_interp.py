@@ -107,6 +107,31 @@ def test_rerun_resumes_without_recomputing(mini_run, tmp_path):
     assert len(again["runs"]) == 2
 
 
+def test_training_resumed_under_a_larger_cap_rescores_its_rows(mini_run, tmp_path):
+    """A rerun with a larger step cap resumes the learned model's training; the rows the old
+    model scored are scored again (each row names its model), every other row is kept."""
+    out, argv = mini_run
+    copy = tmp_path / "longer"
+    shutil.copytree(out, copy)
+    before = json.loads((copy / "results.json").read_text())["rows"]
+    old = {r.get("model") for r in before if r["method"] == "upsampler" and r["guides"] == 8}
+    assert len(old) == 1 and None not in old and old.pop().endswith("/10")
+    args = [a if a != str(out) else str(copy) for a in argv]
+    args[args.index("--cost-sizes") + 1] = "none"
+    args[args.index("upsampler.steps=10")] = "upsampler.steps=14"
+    args[args.index("--methods") + 1] = "upsampler,skinning"
+    args[args.index("--guides") + 1] = "8"
+    assert main(args) == 0
+    after = json.loads((copy / "results.json").read_text())["rows"]
+    assert len(after) == len(before)
+    new = {r["model"] for r in after if r["method"] == "upsampler" and r["guides"] == 8}
+    assert len(new) == 1 and new.pop().endswith("/14")
+    # untouched: the other guide count's model and every method that learns nothing
+    assert [r for r in after if r["method"] == "upsampler" and r["guides"] == 16] == \
+        [r for r in before if r["method"] == "upsampler" and r["guides"] == 16]
+    assert [r for r in after if r["method"] == "skinning"] == [r for r in before if r["method"] == "skinning"]
+
+
 def test_errors_a_newcomer_meets(mini_run, tmp_path, capsys):
     out, _ = mini_run
     data = str(out / "data" / "mini")

@@ -150,7 +150,18 @@ class LearnedInterpolator(Interpolator):
         model.load_state_dict(blob["model"])
         self.model = model.to(self.device).eval()
         self.history = blob["history"]
+        self.result = {k: blob.get(k) for k in ("best_step", "best_valid", "stopped", "steps", "key")}
         return self
+
+    @property
+    def model_id(self):
+        """Which trained weights predict: ``"<checkpoint key[:16]>@<best step>/<steps trained>"``
+        (None before fit/load). The benchmark stores it in each row and scores again the rows of
+        another model (e.g. after training resumed under a larger step cap)."""
+        r = self.result
+        if not r or not r.get("key"):
+            return None
+        return f"{r['key'][:16]}@{r['best_step']}/{r['steps']}"
 
     def trained(self) -> nn.Module:
         """The model: fitted, loaded, or else loaded now from the ``checkpoint`` the method was made

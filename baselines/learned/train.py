@@ -159,7 +159,7 @@ def fit_method(method, train, guides: torch.Tensor, valid=None) -> dict:
     """Train ``method`` (a :class:`~baselines.learned.base.LearnedInterpolator`) on the ``train``
     dataset, validating on ``valid`` (or on sequences held out of ``train``). Sets
     ``method.model`` to the best model and returns ``{"history", "best_step", "best_valid",
-    "stopped", "steps"}``. See the module docstring."""
+    "stopped", "steps", "key"}`` (key: the checkpoint key, a hex digest). See the module docstring."""
     opt = method.train_options()
     device = method.device
     rank, world = dist_info()
@@ -210,7 +210,7 @@ def fit_method(method, train, guides: torch.Tensor, valid=None) -> dict:
     if blob is not None and blob["finished"] and (blob["stopped"] == "early" or blob["steps"] >= opt["steps"]):
         model.load_state_dict(blob["model"])
         method.model = model.eval()
-        return {k: blob[k] for k in ("history", "best_step", "best_valid", "stopped", "steps")}
+        return {**{k: blob[k] for k in ("history", "best_step", "best_valid", "stopped", "steps")}, "key": key}
     params = [p for p in model.parameters() if p.requires_grad]
     optim = torch.optim.Adam(params, lr=opt["lr"])
     state = {"step": 0, "history": {"train": [], "valid": []}, "best_valid": math.inf, "best_step": 0, "bad": 0,
@@ -315,4 +315,4 @@ def fit_method(method, train, guides: torch.Tensor, valid=None) -> dict:
         dist.barrier()
     method.model = model.eval()
     return {"history": state["history"], "best_step": state["best_step"], "best_valid": state["best_valid"],
-            "stopped": stopped, "steps": state["step"]}
+            "stopped": stopped, "steps": state["step"], "key": key}
