@@ -230,7 +230,8 @@ def test_grid_ops(cpu, emu, emu_env, dtype, schedule):
     solve = (grid.target_density, s["dt"], h, r, *_solve_args(grid), grid.active_capacity)
     phi_c, field_c, over_c = ns_c.pressure(*pool_c, *solve)
     phi_e, field_e, over_e = ns_e.pressure(*pool_e, *solve)
-    assert float(phi_c.max()) > 0 and not bool(over_e.any()) and torch.equal(over_e, over_c)  # the squeeze pushes
+    used = pool_c[2] >= 0  # slots past count hold unspecified values (grid.h)
+    assert float(phi_c[used].max()) > 0 and not bool(over_e.any()) and torch.equal(over_e, over_c)  # the squeeze pushes
     assert rel(densify(phi_e, pool_e[2], r), densify(phi_c, pool_c[2], r)) <= grid_tol(dtype, r)
     assert rel(densify(field_e, pool_e[2], r), densify(field_c, pool_c[2], r)) <= grid_tol(dtype, r)
     g2p = lambda field, pool: (s["xf"], s["vf"], field, pool[1], s["frame"], grid.origin, s["free"], s["dt"], h,  # noqa: E731

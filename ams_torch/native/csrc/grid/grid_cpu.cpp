@@ -71,6 +71,9 @@ int lowest_bit(uint64_t bits) { // bits != 0
 template <class T>
 uint64_t lower_faces_massive(const T* faces, int64_t slot, T eps) {
   const T* f = faces + slot * 3 * kBlockCells * 2;
+#if AMS_GRID_SIMD
+  return simd::lower_faces_massive(f, eps);
+#endif
   uint64_t bits = 0;
   for (int l = 0; l < kBlockCells; ++l) {
     const bool all = f[2 * l] > eps && f[2 * (kBlockCells + l)] > eps && f[2 * (2 * kBlockCells + l)] > eps;
@@ -242,7 +245,7 @@ void p2g_impl(const T* x, const T* v, const T* m, const T* frame, const T* origi
                int(std::min<int64_t>(W, P - first)), head.data() + 6 * b * P, slab.data() + b * P, mark.data() + b * nb3);
     }
   });
-  // per scene: slots in block order, zeroed faces of the used slots, particles sorted by slab
+  // per scene: slots in block order, particles sorted by slab
   std::vector<int64_t> start(size_t(B * (slabs + 1)));
   std::vector<int32_t> order(size_t(B * P));
   at::parallel_for(0, B, 1, [&](int64_t b0, int64_t b1) {
@@ -263,7 +266,6 @@ void p2g_impl(const T* x, const T* v, const T* m, const T* frame, const T* origi
       const int64_t used = std::min(n, K);
       std::fill(bl + used, bl + K, -1);
       count[b] = int32_t(n);
-      std::fill(faces + b * pool, faces + b * pool + used * 3 * kBlockCells * 2, T(0));
       int64_t* st = start.data() + b * (slabs + 1);
       std::fill(st, st + slabs + 1, 0);
       for (int64_t p = 0; p < P; ++p) ++st[slab[b * P + p] + 1];
@@ -271,6 +273,11 @@ void p2g_impl(const T* x, const T* v, const T* m, const T* frame, const T* origi
       std::vector<int64_t> fill(st, st + slabs);
       for (int64_t p = 0; p < P; ++p) order[b * P + fill[slab[b * P + p]]++] = int32_t(p);
     }
+  });
+  at::parallel_for(0, B * K, kSlotGrain, [&](int64_t u0, int64_t u1) { // zero the used slots' faces
+    for (int64_t u = u0; u < u1; ++u)
+      if (u % K < std::min<int64_t>(count[u / K], K))
+        std::fill(faces + u * 3 * kBlockCells * 2, faces + (u + 1) * 3 * kBlockCells * 2, T(0));
   });
   for (int64_t colour = 0; colour < 2; ++colour) {
     const int64_t per_scene = (slabs - colour + 1) / 2; // slabs colour, colour + 2, ...
@@ -328,13 +335,10 @@ void pressure_impl(const T* faces, const int32_t* table, const int32_t* blocks, 
   std::vector<int64_t> first(size_t(B + 1), 0);
   for (int64_t b = 0; b < B; ++b) first[b + 1] = first[b] + std::min<int64_t>(std::max(count[b], 0), K);
   const int64_t U = first[B];
-  for (int64_t b = 0; b < B; ++b) { // unused slots hold 0: every output is defined, as on CUDA
-    overflow[b] = count[b] > K;     // the blocks P2G left out
-    const int64_t used = first[b + 1] - first[b];
-    std::fill(phi_a + (b * K + used) * kBlockCells, phi_a + (b + 1) * K * kBlockCells, T(0));
-    std::fill(phi_b + (b * K + used) * kBlockCells, phi_b + (b + 1) * K * kBlockCells, T(0));
-    std::fill(field + (b * K + used) * 3 * kBlockCells, field + (b + 1) * K * 3 * kBlockCells, T(0));
-  }
+  // Slots >= count[b] of phi and field are not written (as P2G leaves them in faces): nothing
+  // reads them (G2P reaches the pool through the table), and zeroing them would cost the whole
+  // capacity, 4x the hair's blocks by default, every frame.
+  for (int64_t b = 0; b < B; ++b) overflow[b] = count[b] > K; // the blocks P2G left out
   if (U == 0) return;
   std::vector<int32_t> scene(static_cast<size_t>(U));
   for (int64_t b = 0; b < B; ++b) std::fill(scene.begin() + first[b], scene.begin() + first[b + 1], int32_t(b));
@@ -421,7 +425,11 @@ void pressure_impl(const T* faces, const int32_t* table, const int32_t* blocks, 
       for (int d = 0; d < 6 && quiet; d += 2) quiet = nbr[6 * u + d] < 0 || !awake[first[b] + nbr[6 * u + d]];
       if (quiet) {
         const T* f = fs + slot * 3 * kBlockCells * 2;
+#if AMS_GRID_SIMD
+        simd::quiet_field(f, q.pic, out);
+#else
         for (int i = 0; i < 3 * kBlockCells; ++i) out[i] = f[2 * i] > T(0) ? q.pic * (f[2 * i + 1] / f[2 * i]) : T(0);
+#endif
         continue;
       }
       for (int c = 0; c < 3; ++c)
