@@ -13,6 +13,7 @@ import json
 import shutil
 import sys
 from pathlib import Path
+from typing import Optional
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -158,18 +159,47 @@ def pays_off(results: dict) -> list:
     return lines
 
 
+def _blobs(run: Path) -> list:
+    """(checkpoint blob, path) of every readable learned model of a run."""
+    from baselines.learned.train import load_blob
+
+    out = []
+    for f in sorted((run / "models").glob("*/*.pt")):
+        try:
+            out.append((load_blob(str(f)), f))
+        except (ValueError, OSError, RuntimeError):
+            continue
+    return out
+
+
+def budget(run: Optional[Path]) -> str:
+    """How to read the learned rows: which methods' models all stopped early (validation stalled:
+    trained to convergence) and which stopped at the run's step cap (a lower bound)."""
+    if run is None:
+        return ""
+    early, capped = {}, {}
+    for b, _ in _blobs(run):
+        (early if b["stopped"] == "early" else capped).setdefault(b["method"], 0)
+        (early if b["stopped"] == "early" else capped)[b["method"]] += 1
+    conv = sorted(m for m in early if m not in capped)
+    cap = sorted(capped)
+    parts = []
+    if conv:
+        parts.append(f"{', '.join(f'`{m}`' for m in conv)}: every model stopped early, its validation loss stalled "
+                     f"(trained to convergence)")
+    if cap:
+        parts.append(f"{', '.join(f'`{m}`' for m in cap)}: stopped at the run's step cap (a compute budget: not "
+                     f"converged, so their rows are a lower bound on what the method can do)")
+    return "; ".join(parts) + "."
+
+
 def training(run: Path) -> list:
     """A table of the learned models of a run (``run/models/<dataset>/<method>-G<g>.pt``): steps run
     and the cap, the best validation step and loss (mm², the untrained model's for scale), and
     whether training stopped early (validation stalled) or at the step cap (not converged)."""
-    from baselines.learned.train import load_blob
 
     rows = []
-    for f in sorted((run / "models").glob("*/*.pt")):
-        try:
-            b = load_blob(str(f))
-        except (ValueError, OSError, RuntimeError):
-            continue
+    for b, f in _blobs(run):
         valid = b["history"].get("valid") or []
         start = valid[0]["loss"] if valid else float("nan")
         cap = b["train_options"]["steps"]
@@ -202,10 +232,10 @@ def page(results: dict, wall: str, run_dir: Path = None) -> str:
            "*The interpolation benchmark*.", "",
            "## In short", ""]
     out += summary(results)
-    out += ["", "Read the learned rows with their budget: each model was trained under the run's step cap (the "
-            "*Training* table says which stopped at it, not converged), each takes one particle count N (the "
-            "largest group of its train split; the suite mixes N = 8–40), so it is scored on the sequences of that "
-            "N only, and every learned model here starts from skinning's output, which `blend` and `nearest` beat. "
+    out += ["", f"Read the learned rows with their training (the *Training* table): {budget(run_dir)} Each takes "
+            "one particle count N (the largest group of its train split; the suite mixes N = 8–40), so it is scored on "
+            "the sequences of that N only, and every learned model here starts from skinning's output, which `blend` "
+            "and `nearest` beat. "
             "Cost rows: the guide counts given to the cost run, on the CPU; a GPU changes the learned models' cost "
             "most."]
     out += ["", "## Against skinning: which methods beat it, and where", "",
@@ -250,8 +280,12 @@ def main(argv=None) -> None:
     (docs / "baselines").mkdir(parents=True, exist_ok=True)
     for old in (docs / "baselines").glob("*.png"):
         old.unlink()
-    for f in list(run.glob("*.png")) + [run / "results.json"]:
+    for f in run.glob("*.png"):
         shutil.copy2(f, docs / "baselines" / f.name)
+    # one row per line: small diffs when a later run rescoring some methods is committed
+    rows = ",\n".join(json.dumps(r, separators=(",", ":")) for r in results["rows"])
+    rest = json.dumps({k: v for k, v in results.items() if k != "rows"}, separators=(",", ":"))
+    (docs / "baselines" / "results.json").write_text('{"rows":[\n' + rows + "\n]," + rest[1:] + "\n")
     (docs / "baselines.md").write_text(page(results, args.wall, run))
     print(f"wrote {docs / 'baselines.md'}")
 
