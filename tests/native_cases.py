@@ -3,9 +3,9 @@ does not collect it; test modules import it, never each other).
 
 The frame (``make_scene``, ``case_scene`` over ``FRAME_CASES``, ``frame_args``, and the kernels
 called directly: ``native_frame``, ``native_system``), the collision stage (``make_case`` over
-``KINDS``), the hair–hair grid (``squeeze_scene``, also used by ``scripts/bench_hair_hair.py``;
-``tol``), the banded solve (``strand_system``, also used by ``scripts/bench_solver.py`` and
-``scripts/validate_cuda.py``) and the emulator's self-test (``expected_warp_ops``).
+``KINDS``), the hair–hair grid (``squeeze_scene``, ``tol``), the banded solve (``strand_system``,
+also used by ``scripts/bench_solver.py`` and ``scripts/validate_cuda.py``) and the emulator's
+self-test (``expected_warp_ops``).
 """
 from __future__ import annotations
 

@@ -59,9 +59,6 @@ def _namespace(device: str):
     return ns
 
 
-# -- input factory (also used by scripts/bench_hair_hair.py) ---------------------------------
-
-
 # -- helpers -------------------------------------------------------------------------------
 
 

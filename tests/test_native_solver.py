@@ -32,7 +32,7 @@ CSRC_ROOT = CSRC.parent
 
 
 # ---------------------------------------------------------------------------------------
-# input factories (also used by scripts/bench_solver.py)
+# input factories (strand_system, shared: tests/native_cases.py)
 # ---------------------------------------------------------------------------------------
 
 
