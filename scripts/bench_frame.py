@@ -139,7 +139,7 @@ def ops_per_frame(case: dict, path: str, device) -> tuple:
 
 def profile_table(case: dict, path: str, device, frames: int) -> str:
     """The profiler's operators of ``frames`` frames of one path, by self time (ms per call:
-    the native kernels' own cost, e.g. ``ams_torch_frame_cpu::frame_finish``)."""
+    the native kernels' own cost, e.g. ``ams_torch_cpu::frame_finish``)."""
     from torch.profiler import ProfilerActivity, profile
 
     acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if torch.device(device).type == "cuda" else [])

@@ -234,7 +234,7 @@ def main(argv=None):
     if args.threads > 0:
         torch.set_num_threads(args.threads)
     if "native" in args.backends:
-        kind = "grid_cuda" if device.type == "cuda" else "grid_cpu"
+        kind = device.type  # the device's native library (its grid kernels among them)
         if _native.native_ops(kind) is None:
             ap.error(f"native grid kernels unavailable: {_native.native_status()[kind]['reason']}")
 

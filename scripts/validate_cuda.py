@@ -287,7 +287,7 @@ def step_sizes(ctx: dict) -> dict:
     res = {}
     # 1. the banded solve of 1M strands x 32 particles (float32): relative residual
     sys.path.insert(0, str(ROOT / "tests"))
-    from test_native_solver import strand_system
+    from native_cases import strand_system
 
     base = min(s["banded_strands"], 10_000)  # a base set of systems, tiled on the device
     blocks, rhs = strand_system(base, 32, dtype=torch.float32, device=device, seed=3)

@@ -20,7 +20,7 @@ def device(request):
 
 
 def built_native(kind: str):
-    """The torch.ops namespace of native backend ``kind`` ("frame_cpu", "collide_cpu", "grid_cpu"),
+    """The torch.ops namespace of native backend ``kind`` ("cpu", "cuda_emu", "selftest_cuda_emu", ...),
     built or loaded from the cache: skips when AMS_TORCH_NATIVE=0, fails naming the build error
     when it did not build (a CPU build is required wherever the tests run)."""
     from ams_torch.native import build
@@ -48,20 +48,11 @@ def head_sdf(head, tmp_path_factory):
     return SDFGrid.from_mesh(head, resolution=64, cache_dir=tmp_path_factory.mktemp("sdf"))
 
 
-# The native builds, each loaded once per session (skips as ``built_native``).
 @pytest.fixture(scope="session")
-def frame_ops():
-    return built_native("frame_cpu")
-
-
-@pytest.fixture(scope="session")
-def collide_ops():
-    return built_native("collide_cpu")
-
-
-@pytest.fixture(scope="session")
-def grid_ops():
-    return built_native("grid_cpu")
+def cpu_ops():
+    """The CPU native library (every op group's kernels: ``ams_torch_cpu``), built or loaded once
+    per session (skips as ``built_native``)."""
+    return built_native("cpu")
 
 
 def rel(a: torch.Tensor, b: torch.Tensor) -> float:

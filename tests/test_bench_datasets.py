@@ -8,7 +8,7 @@ from conftest import built_native, load_script
 def test_bench_datasets_simulation_section(tmp_path):
     """The batched-simulation section: one record per B with the throughput fields, the batching
     ratio against B = 1, and the table with the target column."""
-    built_native("grid_cpu")
+    built_native("cpu")
     bench = load_script("bench_datasets")
     bench.main(["--sections", "sim", "--sim-strands", "24", "--sim-batches", "1", "4", "--sim-frames", "2",
                 "--particles", "8", "--resolution", "16", "--threads", "1", "--out", str(tmp_path)])

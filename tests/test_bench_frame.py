@@ -9,12 +9,12 @@ def test_bench_frame_smoke(tmp_path, capsys):
     """scripts/bench_frame.py, in-process and tiny: both paths timed, the JSON records carry the
     fields the issue names, the native path dispatches fewer ops than the torch path, and the
     markdown table and ratio are written."""
-    built_native("frame_cpu")
+    built_native("cpu")
     bench = load_script("bench_frame")
     out = tmp_path / "frame"
     assert bench.main(["--scenes", "dynamics", "--strands", "64", "--reps", "2", "--no-memory", "--threads", "1",
                        "--profile", "2", "--out", str(out)]) == 0
-    assert "ams_torch_frame_cpu::frame_finish" in capsys.readouterr().out  # the profile names the fused kernel
+    assert "ams_torch_cpu::frame_finish" in capsys.readouterr().out  # the profile names the fused kernel
     records = json.loads((tmp_path / "frame.json").read_text())["records"]
     keys = {"scene", "S", "N", "device", "path", "stage", "median_ms", "min_ms", "ops_per_frame",
             "peak_bytes_per_particle"}
@@ -36,7 +36,7 @@ def test_parity_script_whole_runs_agree(tmp_path):
     """scripts/parity_frames.py on a small version of the demo scene (head collisions, hair–hair,
     its own motion; 40 strands, 8 frames, float64): native and torch runs, each fed its own
     output, stay within 1e-10 m of each other for both materials."""
-    built_native("frame_cpu")
+    built_native("cpu")
     parity = load_script("parity_frames")
     scene = str(parity.ROOT / "datasets" / "scenes" / "default.toml")
     for material in parity.MATERIALS:

@@ -7,7 +7,7 @@ from conftest import built_native, load_script
 def test_bench_hair_hair_smoke(tmp_path):
     """Both backends and the dense definition timed per case, the blocks the hair occupies
     recorded, the R-scaling table relative to R = 64 and the target rows written."""
-    built_native("grid_cpu")
+    built_native("cpu")
     bench = load_script("bench_hair_hair")
     out = tmp_path / "hh"
     bench.main(["--cases", "40x8", "--resolutions", "16", "64", "--reps", "1", "--collision-cases", "--dense",

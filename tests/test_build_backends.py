@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -48,9 +49,9 @@ def _run(script: str, tmp_path: Path, **env) -> dict:
 
 
 def test_no_compiler_native_raises_auto_warns_once_per_backend_and_runs(tmp_path):
-    """CXX pointing nowhere, an empty cache: backend="native" raises naming every backend it needs and
-    why; "auto" warns once per backend (frame, collisions, grid, banded solve), at construction, and
-    runs 3 frames on the torch path; nothing warns again (steps, a second simulator)."""
+    """CXX pointing nowhere, an empty cache: backend="native" raises naming the backend it needs (the
+    CPU library: frame, collisions, grid and banded solve) and why; "auto" warns once, at
+    construction, and runs 3 frames on the torch path; nothing warns again (steps, a second simulator)."""
     out = _run("""
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
@@ -67,31 +68,27 @@ def test_no_compiler_native_raises_auto_warns_once_per_backend_and_runs(tmp_path
             later = ours(caught)[len(at_construction):]
         print(json.dumps(dict(error=error, warned=at_construction, later=later, backend=sim.config.backend,
                               finite=bool(torch.isfinite(state.x).all()),
-                              status={k: build.native_status()[k]["reason"] for k in
-                                      ("cpu", "frame_cpu", "collide_cpu", "grid_cpu")})))
+                              status=build.native_status()["cpu"]["reason"])))
     """, tmp_path, CXX="/nonexistent/c++", AMS_TORCH_CACHE=str(tmp_path / "cache"))
-    for kind in ("frame_cpu", "collide_cpu", "grid_cpu"):
-        assert f"{kind}: no C++ compiler ('/nonexistent/c++')" in out["error"], out["error"]
+    assert "1 native backend(s)" in out["error"], out["error"]
+    assert "cpu: no C++ compiler ('/nonexistent/c++')" in out["error"], out["error"]
     assert "backend='native'" in out["error"]
     warned = out["warned"]
-    assert len(warned) == 4, warned
-    for kind in ("cpu", "frame_cpu", "collide_cpu", "grid_cpu"):
-        assert sum(f"backend {kind!r} unavailable" in w for w in warned) == 1, (kind, warned)
-        assert "no C++ compiler" in out["status"][kind]
+    assert len(warned) == 1 and "backend 'cpu' unavailable" in warned[0], warned
+    assert "no C++ compiler" in out["status"]
     assert out["later"] == [] and out["backend"] == "torch" and out["finite"]
     assert not (tmp_path / "cache").exists() or not any((tmp_path / "cache").iterdir())
 
 
 def test_construction_builds_every_backend_the_config_needs(tmp_path):
-    """With colliders and hair–hair, native_status() shows the frame, collision, grid and banded
-    backends built right after construction, before any step; and nothing is built in the steps."""
-    for kind in ("cpu", "frame_cpu", "collide_cpu", "grid_cpu"):
-        built_native(kind)  # (in the shared cache: the subprocess loads them)
+    """With colliders and hair–hair, native_status() shows the CPU library (frame, collision, grid
+    and banded kernels) built right after construction, before any step; and nothing is built in
+    the steps."""
+    built_native("cpu")  # (in the shared cache: the subprocess loads it)
     out = _run("""
-        before = {k: build.native_status()[k]["attempted"] for k in ("cpu", "frame_cpu", "collide_cpu", "grid_cpu")}
+        before = {k: build.native_status()[k]["attempted"] for k in ("cpu", "cuda")}
         sim = ams_torch.Simulator(rest, dtype=torch.float64, backend="native", **kw)
-        after = {k: build.native_status()[k]["built"] for k in ("cpu", "frame_cpu", "collide_cpu", "grid_cpu")}
-        plain = {k: build.native_status()[k]["attempted"] for k in ("cpu", "frame_cpu", "collide_cpu", "grid_cpu")}
+        after = {k: build.native_status()[k]["built"] for k in ("cpu",)}
         def refuse(kind, st):
             raise RuntimeError("built inside a step")
         build._build_and_load = refuse
@@ -99,20 +96,35 @@ def test_construction_builds_every_backend_the_config_needs(tmp_path):
         for _ in range(2):
             state = sim.step(state)
         print(json.dumps(dict(before=before, after=after, backend=sim.config.backend,
-                              cuda=build.native_status()["frame_cuda"]["attempted"])))
+                              cuda=build.native_status()["cuda"]["attempted"])))
     """, tmp_path)
     assert not any(out["before"].values()), out
     assert all(out["after"].values()), out
     assert out["backend"] == "native" and not out["cuda"]
 
 
-def test_simulator_without_colliders_builds_only_what_it_uses(tmp_path):
+def test_simulator_builds_only_its_devices_library(tmp_path):
+    """A CPU simulator builds (loads) the CPU library and nothing else: not the CUDA one, not the
+    emulations or the self-test; every stage's kernels are then there (one library)."""
+    built_native("cpu")
     out = _run("""
         sim = ams_torch.Simulator(rest, dtype=torch.float32)
         st = build.native_status()
-        print(json.dumps({k: st[k]["attempted"] for k in ("cpu", "frame_cpu", "collide_cpu", "grid_cpu")}))
+        ns = build.native_ops("cpu")
+        print(json.dumps(dict(attempted=sorted(k for k in build.kinds() if st[k]["attempted"]),
+                              ops=[hasattr(ns, op) for op in ("solve_banded", "frame", "frame_finish", "finish",
+                                                              "frame_contact", "frame_posed", "frame_adjoint",
+                                                              "collide", "p2g", "pressure", "g2p")])))
     """, tmp_path)
-    assert out == {"cpu": True, "frame_cpu": True, "collide_cpu": False, "grid_cpu": False}
+    assert out["attempted"] == ["cpu"] and all(out["ops"]), out
+
+
+def test_needed_backends_is_the_devices_library():
+    from ams_torch.sim.backends import needed_backends
+
+    assert needed_backends("cpu") == (["cpu"], ["cpu"])
+    assert needed_backends("cpu", hair_hair=True, colliders=True) == (["cpu"], ["cpu"])
+    assert needed_backends("meta") == ([], [])
 
 
 def test_native_refuses_a_dtype_without_kernels():
@@ -130,14 +142,13 @@ def test_native_refuses_a_dtype_without_kernels():
 def test_native_status_lists_every_kind():
     st = _native.native_status()
     kinds = _native.kinds()
-    assert {"cpu", "cuda", "frame_cpu", "frame_cuda", "collide_cpu", "collide_cuda", "grid_cpu", "grid_cuda",
-            "frame_cuda_emu", "grid_cuda_emu", "collide_cuda_emu", "cuda_emu"} <= set(kinds)
+    assert set(kinds) == {"cpu", "cuda", "cuda_emu", "selftest_cuda", "selftest_cuda_emu"}
     for kind in kinds:
         for key in ("built", "reason", "flags", "attempted", "library", "device", "notes"):
             assert key in st[kind], (kind, key)
         assert st[kind]["built"] or st[kind]["reason"], kind
     if not torch.cuda.is_available():
-        assert "no CUDA device" in st["frame_cuda"]["reason"] or "without CUDA" in st["frame_cuda"]["reason"]
+        assert "no CUDA device" in st["cuda"]["reason"] or "without CUDA" in st["cuda"]["reason"]
     with pytest.raises(ValueError, match="unknown native backend"):
         _native.native_ops("frame_tpu")
 
@@ -288,7 +299,8 @@ def test_nvcc_arches_parses_the_toolkit():
 
 def test_cache_key_covers_every_header_a_build_reads(tmp_path, monkeypatch):
     """Touching a header included only indirectly (frame.h -> collide.h) changes the cache tag of
-    every backend that reads it, and of no other."""
+    every backend that reads it, and of no other (the CPU and CUDA libraries and the CUDA
+    emulation read it, the self-test does not)."""
     import shutil
 
     from ams_torch.native import build
@@ -296,14 +308,37 @@ def test_cache_key_covers_every_header_a_build_reads(tmp_path, monkeypatch):
     copy = tmp_path / "csrc"
     shutil.copytree(build.CSRC_ROOT, copy)
     monkeypatch.setattr(build, "CSRC_ROOT", copy)
+    monkeypatch.setattr(build.emulation, "SHIM_DIR", copy / "emulation")
     key = {"probe": 1}
-    before = {k: build.build_tag(k, key) for k in build._BACKENDS}
-    readers = {k for k, spec in build._BACKENDS.items() if "collide/collide.h" in build.include_closure(spec[1])}
-    assert {"frame_cpu", "frame_adjoint_cpu", "collide_cpu"} <= readers  # frame.h includes collide.h
+    assert "collide/collide.h" in build.include_closure(("frame/frame_cpu.cpp",))  # through frame/frame.h
+    before = {k: build.build_tag(k, key) for k in build._ALL}
+    readers = {k for k, spec in build._ALL.items() if "collide/collide.h" in build.include_closure(spec[1])}
+    assert readers == {"cpu", "cuda", "cuda_emu"}
     with open(copy / "collide" / "collide.h", "a") as fh:
         fh.write("\n// touched\n")
-    after = {k: build.build_tag(k, key) for k in build._BACKENDS}
+    after = {k: build.build_tag(k, key) for k in build._ALL}
     assert {k for k in before if before[k] != after[k]} == readers
+
+
+def test_one_library_per_device_one_namespace_one_contraction_setting():
+    """Every source of the CPU (CUDA) library registers its functions under that library's one
+    namespace, and nowhere else; every op group's sources are in it; no source or header sets its
+    own floating-point contraction (a pragma would give shared inline/template functions a
+    different rounding per source, and the linker keeps one copy): the build's flag does, for all."""
+    from ams_torch.native import build
+
+    register = re.compile(r"\bTORCH_LIBRARY(?:_FRAGMENT|_IMPL)?\s*\(\s*(\w+)")
+    for kind, (_, sources, headers, namespace, _) in build._BACKENDS.items():
+        assert set(sources) == {s for group in build.GROUPS.values() for s in group[kind == "cuda"]}, kind
+        found = {ns for src in sources for ns in register.findall((build.CSRC_ROOT / src).read_text())}
+        assert found == {namespace}, (kind, found)
+    for path in build.CSRC_ROOT.rglob("*"):
+        if path.suffix in (".cpp", ".cu", ".h", ".cuh") and "emulation" not in path.parts:
+            assert not re.search(r"#\s*pragma\s+(GCC\s+optimize|clang\s+fp|STDC\s+FP_CONTRACT)", path.read_text()), path
+    for device in ("cpu", "emulation"):
+        cflags = build._build_config(device)[0]
+        assert "-ffp-contract=off" in cflags and not any(f.startswith("-ffp-contract=") and f != "-ffp-contract=off"
+                                                        for f in cflags), (device, cflags)
 
 
 def test_includes_are_path_qualified(tmp_path, monkeypatch):

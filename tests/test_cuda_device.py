@@ -16,10 +16,8 @@ import os
 import pytest
 import torch
 from conftest import built_native, rel
-from test_cuda_emulation import expected_warp_ops
-from test_native_collide import make_colliders, make_case
-from test_native_frame import F32, F64, case_scene, frame_args, make_scene, native_frame, native_system, set_pinned
-from test_native_grid import _solve_args, squeeze_scene, tol as grid_tol
+from native_cases import (F32, F64, case_scene, expected_warp_ops, frame_args, make_case, make_colliders, make_scene,
+                          native_frame, native_system, set_pinned, solve_args, squeeze_scene, tol as grid_tol)
 
 import ams_torch
 from ams_torch.sim import native
@@ -35,11 +33,11 @@ pytestmark = [pytest.mark.cuda,
 
 
 def backend(base: str):
-    """The namespace of op group ``base`` on DEVICE (built), e.g. backend("frame")."""
-    kind = {"banded": "cuda", "selftest": "selftest_cuda"}.get(base, f"{base}_cuda")
-    if DEVICE == "cpu":
-        kind = {"banded": "cpu", "selftest": "selftest_cuda_emu"}.get(base, f"{base}_cpu")
-    return built_native(kind)
+    """The namespace of op group ``base``'s kernels on DEVICE (built), e.g. backend("frame"): the
+    device's one library (every group but the emulator's self-test)."""
+    if base == "selftest":
+        return built_native("selftest_cuda_emu" if DEVICE == "cpu" else "selftest_cuda")
+    return built_native(DEVICE)
 
 
 def bounded(dev32, cpu32, ref64) -> bool:
@@ -50,7 +48,7 @@ def bounded(dev32, cpu32, ref64) -> bool:
 def _frame_on(device, case, dtype, **kw):
     sim, state, pose1, coeffs = case_scene(case, dtype=dtype, device=device, **kw)
     args = frame_args(sim, state, pose1, coeffs)
-    ns = backend("frame") if device == DEVICE else built_native("frame_cpu")
+    ns = backend("frame") if device == DEVICE else built_native("cpu")
     k = sim.config.substeps - 1
     return native_frame(ns, *args), native_system(ns, *args[:10], k)
 
@@ -96,7 +94,7 @@ def test_cuda_frame_100k_strands():
         sub = state.replace(**{k: getattr(state, k).cpu()[pick].to(dtype) for k in ("x", "v", "ghost_rest",
                                                                                        "sag_offset")},
                             pose=state.pose.to(device="cpu", dtype=dtype), time=state.time.cpu().to(dtype))
-        ref[dtype] = native_frame(built_native("frame_cpu"), *frame_args(small, sub, pose1.to(device="cpu",
+        ref[dtype] = native_frame(built_native("cpu"), *frame_args(small, sub, pose1.to(device="cpu",
                                                                                                dtype=dtype)))
     got = xg.cpu()[pick]
     assert bounded(got, ref[F32][0], ref[F64][0]), (rel(got, ref[F64][0]), rel(ref[F32][0], ref[F64][0]))
@@ -156,7 +154,7 @@ def test_cuda_every_collider_three_scenes():
         for device in ("cpu", DEVICE):
             sim, x, v, head = _collide_case(device, dtype)
             world = resolve_world_poses(sim.colliders, head, None)
-            ns = backend("collide") if device == DEVICE else built_native("collide_cpu")
+            ns = backend("collide") if device == DEVICE else built_native("cpu")
             out[dtype, device] = ns.collide(*native.collision_arguments(sim.model, sim.config, x, v, head, world))
     (xc, vc), (xg, vg) = out[F64, "cpu"], out[F64, DEVICE]
     assert rel(xg, xc) <= 1e-12 and rel(vg, vc) <= 1e-12
@@ -180,13 +178,13 @@ def test_cuda_grid_three_scenes(dtype):
     s_dev = squeeze_scene(dtype, DEVICE, strands=300, particles=10, resolution=24, scenes=3)
     grid = s_cpu["grid"]
     h, r = grid.cell_size, grid.resolution
-    ns_c, ns_d = built_native("grid_cpu"), backend("grid")
+    ns_c, ns_d = built_native("cpu"), backend("grid")
     faces_c = ns_c.p2g(s_cpu["xf"], s_cpu["vf"], s_cpu["m"], s_cpu["frame"], grid.origin, h, r)
     faces_d = ns_d.p2g(s_dev["xf"], s_dev["vf"], s_dev["m"], s_dev["frame"], s_dev["grid"].origin, h, r)
     assert rel(faces_d, faces_c) <= grid_tol(dtype, r)
-    phi_c, field_c = ns_c.pressure(faces_c, grid.target_density, s_cpu["dt"], h, r, *_solve_args(grid))
+    phi_c, field_c = ns_c.pressure(faces_c, grid.target_density, s_cpu["dt"], h, r, *solve_args(grid))
     phi_d, field_d = ns_d.pressure(faces_c.to(DEVICE), s_dev["grid"].target_density, s_dev["dt"], h, r,
-                                   *_solve_args(grid))
+                                   *solve_args(grid))
     assert rel(phi_d, phi_c) <= grid_tol(dtype, r) and rel(field_d, field_c) <= grid_tol(dtype, r)
 
 
@@ -201,7 +199,7 @@ def test_cuda_p2g_deterministic_mode():
     torch.use_deterministic_algorithms(True)
     try:
         if DEVICE == "cuda":
-            with pytest.raises(RuntimeError, match="ams_torch_grid_cuda::p2g"):
+            with pytest.raises(RuntimeError, match="ams_torch_cuda::p2g"):
                 ns.p2g(*args)
         a, b = p2g_op(*args, False), p2g_op(*args, False)
         assert torch.equal(a, b)

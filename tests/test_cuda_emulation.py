@@ -30,10 +30,8 @@ from __future__ import annotations
 import pytest
 import torch
 from conftest import built_native, rel
-from test_native_collide import make_case
-from test_native_frame import FRAME_CASES, case_scene, frame_args, native_frame, native_system
-from test_native_grid import _solve_args, squeeze_scene, tol as grid_tol
-from test_native_solver import strand_system
+from native_cases import (FRAME_CASES, case_scene, expected_warp_ops, frame_args, make_case, native_frame,
+                          native_system, solve_args, squeeze_scene, strand_system, tol as grid_tol)
 
 from ams_torch.sim import native
 from ams_torch.native import build as _native
@@ -75,15 +73,18 @@ def emu():
 
 @pytest.fixture(scope="session")
 def cpu():
-    return {k: built_native(k) for k in ("cpu", "frame_cpu", "collide_cpu", "grid_cpu")}
+    return {"cpu": built_native("cpu")}
 
 
 def test_every_cuda_backend_has_a_built_emulation(emu):
-    """Each CUDA backend of the build table (and the self-test) has its emulated twin, built from
-    the same sources and headers, smoke-tested, registered under its own namespace."""
+    """Each CUDA backend of the build table (the one CUDA library, and the self-test) has its
+    emulated twin, built from the same sources and headers, smoke-tested, registered under its own
+    namespace; the CUDA library's sources are every group's CUDA sources."""
     table = _native._ALL
     cuda = [k for k, spec in table.items() if spec[4] == "cuda"]
-    assert set(cuda) >= {"cuda", "frame_cuda", "collide_cuda", "grid_cuda", "selftest_cuda"}
+    assert set(cuda) == {"cuda", "selftest_cuda"}
+    assert set(table["cuda"][1]) == {s for _, srcs in _native.GROUPS.values() for s in srcs}
+    assert table["cuda_emu"][3] == "ams_torch_cuda_emu"
     status = _native.native_status()
     for kind in cuda:
         twin = table[kind + "_emu"]
@@ -107,7 +108,7 @@ def _frame_pair(ns_cpu, ns_emu, case, dtype, **kw):
 def test_frame_float64(cpu, emu, emu_env, case):
     """Every frame case: 2 scenes × 37 strands = 74 threads in three 32-thread blocks, the scene
     boundary inside the second one."""
-    out = _frame_pair(cpu["frame_cpu"], emu["frame_cuda_emu"], case, F64, scenes=2, strands=37)
+    out = _frame_pair(cpu["cpu"], emu["cuda_emu"], case, F64, scenes=2, strands=37)
     (xc, vc), (bc, rc) = out["cpu"]
     (xe, ve), (be, re) = out["emu"]
     for got, want, what in ((xe, xc, "x"), (ve, vc, "v"), (be, bc, "blocks"), (re, rc, "rhs")):
@@ -116,8 +117,8 @@ def test_frame_float64(cpu, emu, emu_env, case):
 
 @pytest.mark.parametrize("case", ["default", "nonhookean", "stiff", "one_particle_angular", "three_pins"])
 def test_frame_float32_bounded_by_float64(cpu, emu, emu_env, case):
-    ref = _frame_pair(cpu["frame_cpu"], emu["frame_cuda_emu"], case, F64, scenes=2, strands=21, particles=16)
-    f32 = _frame_pair(cpu["frame_cpu"], emu["frame_cuda_emu"], case, F32, scenes=2, strands=21, particles=16)
+    ref = _frame_pair(cpu["cpu"], emu["cuda_emu"], case, F64, scenes=2, strands=21, particles=16)
+    f32 = _frame_pair(cpu["cpu"], emu["cuda_emu"], case, F32, scenes=2, strands=21, particles=16)
     (x64, v64), _ = ref["cpu"]
     (xc, vc), _ = f32["cpu"]
     (xe, ve), _ = f32["emu"]
@@ -132,7 +133,7 @@ def test_frame_block_sizes(cpu, emu, emu_env, sms, scenes, strands):
     """The three block sizes of strand_block_threads (1 SM: 600 strands in 128-thread blocks; 4 SMs:
     64; 132 SMs: a 5-strand scene in one 32-thread block), scene boundaries inside blocks."""
     emu_env(sms=sms)
-    out = _frame_pair(cpu["frame_cpu"], emu["frame_cuda_emu"], "default", F64, scenes=scenes, strands=strands,
+    out = _frame_pair(cpu["cpu"], emu["cuda_emu"], "default", F64, scenes=scenes, strands=strands,
                       particles=8)
     (xc, vc), (bc, rc) = out["cpu"]
     (xe, ve), (be, re) = out["emu"]
@@ -145,7 +146,7 @@ def test_frame_does_not_depend_on_the_schedule(emu, emu_env, schedule):
     capped to 1 or 3 blocks): bit for bit the forward result (every thread owns its strand)."""
     sim, state, pose1, coeffs = case_scene("nonhookean", dtype=F64, scenes=3, strands=23)
     args = frame_args(sim, state, pose1, coeffs)
-    ns = emu["frame_cuda_emu"]
+    ns = emu["cuda_emu"]
     want = native_frame(ns, *args)
     emu_env(**SCHEDULES[schedule])
     got = native_frame(ns, *args)
@@ -158,19 +159,19 @@ def test_frame_finish_and_noncontiguous_inputs(cpu, emu, emu_env):
     sim, state, pose1, coeffs = case_scene("default", dtype=F64, scenes=2, strands=37)
     args = native.op_arguments(*frame_args(sim, state, pose1, coeffs)[:10], None)
     finish = [pose1.translation.contiguous(), pose1.linear_velocity.contiguous(), pose1.angular_velocity.contiguous()]
-    want = cpu["frame_cpu"].frame_finish(*args, -1, finish)
-    got = emu["frame_cuda_emu"].frame_finish(*args, -1, finish)
+    want = cpu["cpu"].frame_finish(*args, -1, finish)
+    got = emu["cuda_emu"].frame_finish(*args, -1, finish)
     for g, w in zip(got, want):
         assert rel(g, w) <= 1e-12
     x, v = state.x, state.v
-    want_f = cpu["frame_cpu"].finish(x, v, sim.model.num_pinned, finish)
-    got_f = emu["frame_cuda_emu"].finish(x, v, sim.model.num_pinned, finish)
+    want_f = cpu["cpu"].finish(x, v, sim.model.num_pinned, finish)
+    got_f = emu["cuda_emu"].finish(x, v, sim.model.num_pinned, finish)
     assert all(rel(g, w) <= 1e-12 for g, w in zip(got_f, want_f))
     # non-contiguous: the state as a transposed copy's view, the same values
     state_nc = [t.transpose(-1, -3).contiguous().transpose(-1, -3) for t in args[0]]
     assert not state_nc[0].is_contiguous()
-    got_nc = emu["frame_cuda_emu"].frame(state_nc, *args[1:], -1)
-    got_c = emu["frame_cuda_emu"].frame(*args, -1)
+    got_nc = emu["cuda_emu"].frame(state_nc, *args[1:], -1)
+    got_c = emu["cuda_emu"].frame(*args, -1)
     assert torch.equal(got_nc[0], got_c[0]) and torch.equal(got_nc[1], got_c[1])
 
 
@@ -186,8 +187,8 @@ def test_collide_every_collider(cpu, emu, emu_env, kind):
     """Every collider (and all five together), float64 and float32, 2 scenes × 37 strands."""
     for dtype in (F64, F32):
         sim, x, v, head, _ = make_case(kind, dtype=dtype, scenes=2, strands=37)
-        xc, vc = _collide(cpu["collide_cpu"], sim, x, v, head)
-        xe, ve = _collide(emu["collide_cuda_emu"], sim, x, v, head)
+        xc, vc = _collide(cpu["cpu"], sim, x, v, head)
+        xe, ve = _collide(emu["cuda_emu"], sim, x, v, head)
         if dtype == F64:
             assert rel(xe, xc) <= 1e-12 and rel(ve, vc) <= 1e-12, (kind, rel(xe, xc), rel(ve, vc))
             ref = (xc, vc)
@@ -198,7 +199,7 @@ def test_collide_every_collider(cpu, emu, emu_env, kind):
 
 def test_collide_does_not_depend_on_the_schedule(emu, emu_env):
     sim, x, v, head, _ = make_case("all", scenes=3, strands=23)
-    ns = emu["collide_cuda_emu"]
+    ns = emu["cuda_emu"]
     want = _collide(ns, sim, x, v, head)
     for schedule in SCHEDULES.values():
         emu_env(**schedule)
@@ -220,14 +221,14 @@ def test_grid_ops(cpu, emu, emu_env, dtype, schedule):
     s = squeeze_scene(dtype, strands=60, particles=8, resolution=12, scenes=3)
     grid = s["grid"]
     h, r, k = grid.cell_size, grid.resolution, grid.capacity
-    ns_c, ns_e = cpu["grid_cpu"], emu["grid_cuda_emu"]
+    ns_c, ns_e = cpu["cpu"], emu["cuda_emu"]
     args = (s["xf"], s["vf"], s["m"], s["frame"], grid.origin, h, r, k)
     pool_c, pool_e, pool_t = ns_c.p2g(*args), ns_e.p2g(*args), p2g_sparse(*args)
     assert torch.equal(pool_e[3], pool_c[3])  # the same number of blocks per scene
     dense = lambda pool: densify(pool[0], pool[2], r)  # noqa: E731
     assert rel(dense(pool_e), dense(pool_c)) <= grid_tol(dtype, r)
     assert rel(dense(pool_e), dense(pool_t)) <= grid_tol(dtype, r)
-    solve = (grid.target_density, s["dt"], h, r, *_solve_args(grid), grid.active_capacity)
+    solve = (grid.target_density, s["dt"], h, r, *solve_args(grid), grid.active_capacity)
     phi_c, field_c, over_c = ns_c.pressure(*pool_c, *solve)
     phi_e, field_e, over_e = ns_e.pressure(*pool_e, *solve)
     used = pool_c[2] >= 0  # slots past count hold unspecified values (grid.h)
@@ -250,8 +251,8 @@ def test_grid_p2g_tells_deterministic_mode(emu):
     before = torch.are_deterministic_algorithms_enabled()
     torch.use_deterministic_algorithms(True)
     try:
-        with pytest.raises(RuntimeError, match="ams_torch_grid_cuda::p2g"):
-            emu["grid_cuda_emu"].p2g(*args)
+        with pytest.raises(RuntimeError, match="ams_torch_cuda::p2g"):
+            emu["cuda_emu"].p2g(*args)
     finally:
         torch.use_deterministic_algorithms(before)
 
@@ -273,25 +274,6 @@ def test_banded_solve(emu, emu_env, n):
 
 
 # -- the emulator itself (the same kernels run on the GPU in scripts/validate_cuda.py) ------------
-
-def expected_warp_ops(threads: int) -> torch.Tensor:
-    """What selftest_cuda.cu's warp_ops kernel must write (CUDA semantics), per thread."""
-    rows = []
-    for t in range(threads):
-        lane, base = t % 32, t - t % 32
-        count = min(32, threads - base)
-        full = (1 << count) - 1
-        val = lambda src: 10 * src if src < count else 10 * lane  # noqa: E731  (absent source: own value)
-        up = lane - 2 if lane - 2 >= (lane - lane % 16) else lane
-        rows.append([
-            lane, full, (full & ((1 << 20) - 1)) if lane < 20 else -1,
-            sum(1 << k for k in range(count) if k % 3 == 0), val((lane + 1) % 32),
-            val(lane + 3) if lane + 3 < 32 else 10 * lane, val(lane ^ 5), val(up),
-            sum(1 << k for k in range(count) if k // 4 == lane // 4), 1 if count > 7 else 0, 1,
-            sum(1 << k for k in range(count) if k % 2 == 0 and k // 8 == lane // 8) if lane % 2 == 0 else -1,
-            100 + (lane + 1) % 32 if (lane + 1) % 32 < count else -1, threads * (threads - 1) // 2,
-        ])
-    return torch.tensor(rows, dtype=torch.int64)
 
 
 @pytest.mark.parametrize("threads", [32, 50, 96])

@@ -28,7 +28,7 @@ MATERIAL = ("linear_density", "drag", "stretch_rigidity", "bend_rigidity", "tors
 
 @pytest.fixture(scope="module", autouse=True)
 def adjoint_cpu():
-    return built_native("frame_adjoint_cpu")
+    return built_native("cpu")
 
 
 def _gradients(backend: str, params: at.Params, learnable=MATERIAL, frames: int = 2, scenes: int = 0,

@@ -21,13 +21,13 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import built_native, rel
+from conftest import rel
+from native_cases import F32, F64, KINDS, make_case
 
 from ams_torch.apps.motion import Shake
 import ams_torch
 from ams_torch import testing
 from ams_torch.geometry.pose import Pose
-from ams_torch.geometry.sdf import SDFGrid
 from ams_torch.sim import native
 from ams_torch.sim.dynamics import frame_dynamics
 from ams_torch.sim.model import coefficients
@@ -35,62 +35,13 @@ from ams_torch.sim.stepping import collisions
 from ams_torch.native import build as _native
 from ams_torch.stages.collide import (
     CapsuleCollider,
-    HollowSphereCollider,
-    MeshCollider,
     PlaneCollider,
     SphereCollider,
     resolve_world_poses,
 )
 
 REPO = Path(__file__).resolve().parents[1]
-F64, F32 = torch.float64, torch.float32
 EPS32 = torch.finfo(F32).eps
-
-
-def _ball_grid(center, radius, lower, upper, resolution=20):
-    c = torch.tensor(center, dtype=F64)
-    return SDFGrid.from_function(lambda p: (p - c).norm(dim=-1) - radius, lower, upper, resolution, dtype=F64)
-
-
-def make_colliders(kind: str, rest: torch.Tensor) -> list:
-    """Colliders placed across a sphere groom (roots on a 0.1 m ball, strands hanging 0.25 m);
-    the capsule and the mesh ball go through particles of the rest shape ``rest`` (S, N, 3)."""
-    s, n = rest.shape[:2]
-    p1, p2, p3 = (rest[s // 4, n // 2], rest[(3 * s) // 4, n // 2], rest[s // 2, (2 * n) // 3])
-    lower, upper = (p3 - 0.09).tolist(), (p3 + torch.tensor([0.12, 0.04, 0.12], dtype=F64)).tolist()
-    shapes = {
-        "sphere": lambda: SphereCollider((0.0, 0.0, 0.0), 0.106, friction=0.3, follow_head=True),
-        "capsule": lambda: CapsuleCollider(p1.tolist(), p2.tolist(), 0.04, friction=0.8),
-        "plane": lambda: PlaneCollider((0.0, -0.16, 0.0), (0.15, 1.0, 0.05), friction=0.5),
-        "hollow": lambda: HollowSphereCollider((0.0, 0.02, 0.0), 0.2, 0.05, 0.1, friction=0.4),
-        "hollow_closed": lambda: HollowSphereCollider((0.0, 0.0, 0.0), 0.16, 0.04, None, friction=0.2),
-        # a ball SDF grid whose box covers only part of the hair (the outside-the-box correction too)
-        "mesh": lambda: MeshCollider(_ball_grid(p3.tolist(), 0.07, lower, upper), follow_head=True, friction=0.6,
-                                     projection_iterations=3),
-    }
-    if kind == "all":
-        return [shapes[k]() for k in ("sphere", "capsule", "plane", "hollow", "mesh")]
-    return [shapes[kind]()]
-
-
-def make_case(kind: str, dtype=F64, scenes=None, strands=15, particles=10, seed=0, rounds=1, **params):
-    """A simulator with colliders, a state pushed into them and the head pose at the frame's end.
-    Returns (sim, x, v, head_pose, collider_poses)."""
-    rest = testing.sphere_groom(strands, particles, dtype=F64, seed=seed)
-    sim = ams_torch.Simulator(rest, ams_torch.Params(collision_inextensibility=rounds, **params), dtype=dtype,
-                              colliders=make_colliders(kind, rest))
-    dt = sim.config.dt
-
-    def motion(b):
-        return Shake(amplitude=0.4 + 0.3 * b, translation=(0.03, 0.02 * b, 0.0)).poses(3, dt, dtype=dtype)[1]
-
-    head = motion(0) if scenes is None else Pose.stack([motion(b) for b in range(scenes)])
-    state = sim.initial_state(head)
-    g = torch.Generator().manual_seed(seed + 1)
-    noise = lambda scale: (scale * torch.randn(state.x.shape, generator=g, dtype=F64)).to(dtype)  # noqa: E731
-    x = state.x + noise(8e-3)
-    v = state.v + noise(0.4)
-    return sim, x, v, head, ()
 
 
 def run_both(ns, sim, x, v, head, collider_poses=()):
@@ -114,34 +65,32 @@ def contact_share(sim, x, world) -> float:
 # each collider alone and all together
 # ---------------------------------------------------------------------------------------
 
-KINDS = ["sphere", "capsule", "plane", "hollow", "hollow_closed", "mesh", "all"]
-
 
 @pytest.mark.parametrize("kind", KINDS)
-def test_each_collider_float64(collide_ops, kind):
+def test_each_collider_float64(cpu_ops, kind):
     sim, x, v, head, poses = make_case(kind)
-    (xr, vr), (xn, vn), world = run_both(collide_ops, sim, x, v, head, poses)
+    (xr, vr), (xn, vn), world = run_both(cpu_ops, sim, x, v, head, poses)
     assert contact_share(sim, x, world) > 0.02, "the case has too few contacts"
     assert rel(xn, xr) <= 1e-10 and rel(vn, vr) <= 1e-10, (rel(xn, xr), rel(vn, vr))
     assert rel(xn, x) > 1e-6  # the stage did something
 
 
 @pytest.mark.parametrize("rounds,inext", [(0, True), (2, True), (1, False)])
-def test_rounds_and_inextensibility(collide_ops, rounds, inext):
+def test_rounds_and_inextensibility(cpu_ops, rounds, inext):
     sim, x, v, head, poses = make_case("all", rounds=rounds, inextensibility=inext)
-    (xr, vr), (xn, vn), _ = run_both(collide_ops, sim, x, v, head, poses)
+    (xr, vr), (xn, vn), _ = run_both(cpu_ops, sim, x, v, head, poses)
     assert rel(xn, xr) <= 1e-10 and rel(vn, vr) <= 1e-10
 
 
-def test_pinned_particles_untouched(collide_ops):
+def test_pinned_particles_untouched(cpu_ops):
     sim, x, v, head, poses = make_case("all")
-    (_, _), (xn, vn), _ = run_both(collide_ops, sim, x, v, head, poses)
+    (_, _), (xn, vn), _ = run_both(cpu_ops, sim, x, v, head, poses)
     pinned = sim.model.pinned
     assert pinned.any()
     assert torch.equal(xn[pinned], x[pinned]) and torch.equal(vn[pinned], v[pinned])
 
 
-def test_scenes_with_their_own_poses(collide_ops):
+def test_scenes_with_their_own_poses(cpu_ops):
     """B > 1 scenes: per-scene head poses, a follow-head sphere, a world capsule with one pose per
     scene and a moving plane (velocities), a mesh with a shared pose."""
     sim, x, v, head, _ = make_case("all", scenes=3)
@@ -150,20 +99,20 @@ def test_scenes_with_their_own_poses(collide_ops):
                                        (0.0, 0.5, 0.2 * k), dtype=F64) for k in range(b)])
     plane_pose = Pose.from_rotvec((0.05, 0.0, 0.0), (0.0, 0.01, 0.0), (0.0, 0.3, 0.0), (0.2, 0.0, 0.0), dtype=F64)
     poses = (None, rot, plane_pose, None, None)
-    (xr, vr), (xn, vn), world = run_both(collide_ops, sim, x, v, head, poses)
+    (xr, vr), (xn, vn), world = run_both(cpu_ops, sim, x, v, head, poses)
     assert world[1].rotation.shape == (3, 3, 3) and world[2].has_velocity
     assert rel(xn, xr) <= 1e-10 and rel(vn, vr) <= 1e-10
     for k in range(b):
         assert rel(xn[k], xr[k]) <= 1e-10 and rel(vn[k], vr[k]) <= 1e-10
 
 
-def test_entry_point_and_unsupported_collider(collide_ops):
+def test_entry_point_and_unsupported_collider(cpu_ops):
     sim, x, v, head, _ = make_case("all")
     world = resolve_world_poses(sim.colliders, head, None)
     assert native.native_collisions_available("cpu", F64)
     assert native.native_collisions_supported(sim.model, x, v, head, world)
     xn, vn = native.native_collisions(sim.model, sim.config, x, v, head, world)
-    direct = collide_ops.collide(*native.collision_arguments(sim.model, sim.config, x, v, head, world))
+    direct = cpu_ops.collide(*native.collision_arguments(sim.model, sim.config, x, v, head, world))
     assert torch.equal(xn, direct[0]) and torch.equal(vn, direct[1])
 
     class Shifted(SphereCollider):  # a subclass may compute its own distance: torch path
@@ -193,12 +142,12 @@ def test_op_default_is_the_torch_definition():
     assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
 
 
-def test_float32(collide_ops):
+def test_float32(cpu_ops):
     """float32: as close to the float64 stage as the torch float32 stage is (twice, plus 8 ulps)."""
     out = {}
     for dtype in (F32, F64):
         sim, x, v, head, poses = make_case("all", dtype=dtype)
-        out[dtype] = run_both(collide_ops, sim, x, v, head, poses)[:2]
+        out[dtype] = run_both(cpu_ops, sim, x, v, head, poses)[:2]
     (x64, v64), _ = out[F64]
     (xt, vt), (xn, vn) = out[F32]
     assert xn.dtype == F32
@@ -206,7 +155,7 @@ def test_float32(collide_ops):
         assert rel(nat, ref) <= 2 * rel(tor, ref) + 8 * EPS32, (rel(nat, ref), rel(tor, ref))
 
 
-def test_sixty_frames_in_contact(collide_ops):
+def test_sixty_frames_in_contact(cpu_ops):
     """60 frames of a shaken groom resting on a head sphere and cut by a plane and a capsule,
     float64: torch frame + torch collisions against native frame + native collisions, each fed its
     own output. Strands are in contact on every frame; report the max difference."""
@@ -218,7 +167,7 @@ def test_sixty_frames_in_contact(collide_ops):
     poses = Shake(amplitude=0.7, frequency=1.5, translation=(0.04, 0.03, 0)).poses(61, sim.config.dt, dtype=F64)
     state = sim.initial_state(poses[0])
     coeffs = coefficients(sim.model)
-    frame_ns = _native.native_ops("frame_cpu")
+    frame_ns = _native.native_ops("cpu")
     paths = {"torch": (state.x, state.v), "native": (state.x, state.v)}
     worst, contacts = 0.0, []
     for f in range(60):
@@ -233,7 +182,7 @@ def test_sixty_frames_in_contact(collide_ops):
                 x, v = collisions(sim.model, sim.config, x, v, p1, ())
             else:
                 x, v = frame_ns.frame(*native.op_arguments(*a[:10], None), -1)
-                x, v = collide_ops.collide(*native.collision_arguments(sim.model, sim.config, x, v, p1, world))
+                x, v = cpu_ops.collide(*native.collision_arguments(sim.model, sim.config, x, v, p1, world))
             paths[name] = (x, v)
         worst = max(worst, (paths["native"][0] - paths["torch"][0]).abs().max().item())
     print(f"60 frames in contact: max |x_native - x_torch| = {worst:.3g} m; contact share "
@@ -242,7 +191,7 @@ def test_sixty_frames_in_contact(collide_ops):
     assert worst <= 1e-10
 
 
-def test_opcheck_and_compile(collide_ops):
+def test_opcheck_and_compile(cpu_ops):
     for dtype in (F64, F32):
         sim, x, v, head, _ = make_case("all", dtype=dtype, scenes=2, strands=5, particles=6)
         world = resolve_world_poses(sim.colliders, head, None)
@@ -264,16 +213,16 @@ def test_opcheck_and_compile(collide_ops):
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 @pytest.mark.parametrize("dtype", [F64, F32])
-def test_cuda_matches_cpu(collide_ops, dtype):
-    ns = _native.native_ops("collide_cuda")
+def test_cuda_matches_cpu(cpu_ops, dtype):
+    ns = _native.native_ops("cuda")
     if ns is None:
-        reason = _native.native_status()["collide_cuda"]["reason"]
+        reason = _native.native_status()["cuda"]["reason"]
         if reason.startswith("no CUDA toolkit"):
             pytest.skip(reason)
         raise AssertionError(reason)
     sim, x, v, head, _ = make_case("all", dtype=dtype, scenes=2, strands=37)
     world = resolve_world_poses(sim.colliders, head, None)
-    cpu = collide_ops.collide(*native.collision_arguments(sim.model, sim.config, x, v, head, world))
+    cpu = cpu_ops.collide(*native.collision_arguments(sim.model, sim.config, x, v, head, world))
     sim_c = sim.to("cuda")
     head_c = head.to(device="cuda")
     world_c = resolve_world_poses(sim_c.colliders, head_c, None)

@@ -13,8 +13,8 @@ from functools import partial
 
 import pytest
 import torch
-from conftest import built_native, rel
-from test_native_collide import KINDS, make_colliders
+from conftest import rel
+from native_cases import KINDS, make_colliders
 
 from ams_torch.apps.motion import Shake
 import ams_torch
@@ -67,11 +67,11 @@ def both(ns, sim, x, v, state, pose0, pose1, collider_poses=()):
 
 
 @pytest.mark.parametrize("kind", KINDS)
-def test_each_collider_float64(frame_ops, kind):
+def test_each_collider_float64(cpu_ops, kind):
     """Collider by collider (and all five together): one frame of M = 3 substeps, each followed by
     the contact response; the particles start inside the colliders."""
     sim, x, v, state, pose0, pose1 = make_frame(kind)
-    (xr, vr), (xn, vn) = both(frame_ops, sim, x, v, state, pose0, pose1)
+    (xr, vr), (xn, vn) = both(cpu_ops, sim, x, v, state, pose0, pose1)
     assert rel(xn, xr) <= 1e-10 and rel(vn, vr) <= 1e-10, (rel(xn, xr), rel(vn, vr))
     coeffs = coefficients(sim.model)
     plain = frame_dynamics(sim.model, coeffs, sim.config, x, v, state.ghost_rest, state.sag_offset, pose0, pose1,
@@ -79,7 +79,7 @@ def test_each_collider_float64(frame_ops, kind):
     assert rel(xr, plain[0]) > 1e-6, "the substep contact changed nothing"
 
 
-def test_scenes_with_their_own_poses(frame_ops):
+def test_scenes_with_their_own_poses(cpu_ops):
     """B = 3 scenes with their own head motions, a world capsule with one pose per scene and a
     moving plane (with velocities)."""
     sim, x, v, state, pose0, pose1 = make_frame("all", scenes=3)
@@ -87,12 +87,12 @@ def test_scenes_with_their_own_poses(frame_ops):
                                        (0.0, 0.5, 0.2 * k), dtype=F64) for k in range(3)])
     plane = Pose.from_rotvec((0.05, 0.0, 0.0), (0.0, 0.01, 0.0), (0.0, 0.3, 0.0), (0.2, 0.0, 0.0), dtype=F64)
     poses = (None, rot, plane, None, None)
-    (xr, vr), (xn, vn) = both(frame_ops, sim, x, v, state, pose0, pose1, poses)
+    (xr, vr), (xn, vn) = both(cpu_ops, sim, x, v, state, pose0, pose1, poses)
     for k in range(3):
         assert rel(xn[k], xr[k]) <= 1e-10 and rel(vn[k], vr[k]) <= 1e-10
 
 
-def test_frame_by_frame_through_the_simulator(frame_ops):
+def test_frame_by_frame_through_the_simulator(cpu_ops):
     """30 frames of a shaken head with every collider, through ``Simulator.step``: the native
     backend and the torch backend stay within 1e-9 relative, frame by frame."""
     rest = testing.sphere_groom(12, 10, dtype=F64, seed=3)

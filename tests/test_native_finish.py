@@ -15,7 +15,7 @@ from ams_torch.sim.state import Control
 from ams_torch.sim.stepping import SimulationDiverged, check_state, step
 from ams_torch.stages.collide import SphereCollider
 from conftest import DEVICES, rel
-from test_native_frame import F32, F64, _native_ns, frame_args, make_scene
+from native_cases import F32, F64, frame_args, make_scene, native_ns
 
 EPS64 = torch.finfo(F64).eps
 
@@ -41,8 +41,8 @@ def _case(device="cpu", dtype=F64, batch=(), pose_batch=None, strands=6, particl
 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("batch,pose_batch", [((), None), ((3,), None), ((3,), ()), ((2, 2), None)])
-def test_native_equals_definition_float64(frame_ops, device, batch, pose_batch):
-    _native_ns(device)  # the kernels of this device are built (else the op would take the definition)
+def test_native_equals_definition_float64(cpu_ops, device, batch, pose_batch):
+    native_ns(device)  # the kernels of this device are built (else the op would take the definition)
     model, x, v, pose = _case(device, F64, batch, pose_batch)
     want_v, want_s = finish.pin_and_speed(x, v, model.pinned, pose)
     got_v, got_s = finish.native_finish(model, x, v, pose)
@@ -59,10 +59,10 @@ def test_native_equals_definition_float64(frame_ops, device, batch, pose_batch):
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_native_equals_definition_float32(frame_ops, device):
+def test_native_equals_definition_float32(cpu_ops, device):
     """float32: the head's rigid velocity is a few products and sums of O(1) terms, so each
     component is within a few ulps of the norm of the terms (bound 8 eps · scale)."""
-    _native_ns(device)
+    native_ns(device)
     model, x, v, pose = _case(device, F32, (2,))
     want_v, want_s = finish.pin_and_speed(x, v, model.pinned, pose)
     got_v, got_s = finish.native_finish(model, x, v, pose)
@@ -73,7 +73,7 @@ def test_native_equals_definition_float32(frame_ops, device):
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf])
-def test_nonfinite_particles_give_nonfinite_speed(frame_ops, bad):
+def test_nonfinite_particles_give_nonfinite_speed(cpu_ops, bad):
     model, x, v, pose = _case()
     free = (~model.pinned).nonzero()[0]
     v[free[0], free[1], 1] = bad
@@ -85,7 +85,7 @@ def test_nonfinite_particles_give_nonfinite_speed(frame_ops, bad):
     assert torch.isfinite(speed[others]).all()
 
 
-def test_opcheck(frame_ops):
+def test_opcheck(cpu_ops):
     for dtype, batch, pose_batch in ((F64, (2,), None), (F32, (), None), (F64, (3,), ())):
         model, x, v, pose = _case("cpu", dtype, batch, pose_batch)
         (_, t, lin, ang), _ = pose_tensors(pose, x)
@@ -100,7 +100,7 @@ def test_op_default_is_the_definition():
     assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
 
 
-def test_gradients_stay_on_the_definition(frame_ops):
+def test_gradients_stay_on_the_definition(cpu_ops):
     model, x, v, pose = _case()
     v = v.requires_grad_()
     out, speed = finish.native_finish(model, x, v, pose)
@@ -119,7 +119,7 @@ def _shaken(backend, dtype=F64):
     return sim, Shake(amplitude=0.6, frequency=1.5).poses(12, 1 / 60, dtype=dtype)
 
 
-def test_simulator_frames_native_equal_torch(frame_ops):
+def test_simulator_frames_native_equal_torch(cpu_ops):
     """Whole frames (dynamics + the frame's end) through both paths, float64: the finish adds no
     difference beyond the frame kernel's rounding."""
     out = {}
@@ -134,7 +134,7 @@ def test_simulator_frames_native_equal_torch(frame_ops):
     assert int(a.diverged_frame) == -1 == int(b.diverged_frame)
 
 
-def test_divergence_flag_through_the_native_finish(frame_ops):
+def test_divergence_flag_through_the_native_finish(cpu_ops):
     """A particle made NaN in the state sets the flag on the next frame on the native path, and the
     guard names the input as bad, as on the torch path."""
     for backend in ("native", "torch"):
@@ -152,7 +152,7 @@ def test_divergence_flag_through_the_native_finish(frame_ops):
 
 
 @pytest.mark.parametrize("scenes,dtype", [(None, F64), (2, F64), (2, F32)])
-def test_frame_with_its_end_fused(frame_ops, scenes, dtype):
+def test_frame_with_its_end_fused(cpu_ops, scenes, dtype):
     """``native_frame_dynamics(..., finish=pose)`` (the frame's end fused into the frame kernel,
     what a dynamics-only step runs) equals the torch frame followed by ``pin_and_speed``; float64
     to rounding, float32 within its conditioning (the frame's own float32 bound)."""
@@ -172,7 +172,7 @@ def test_frame_with_its_end_fused(frame_ops, scenes, dtype):
     assert (v[..., sim.model.pinned, :] - head[..., sim.model.pinned, :]).abs().max() <= 1e3 * torch.finfo(dtype).eps
 
 
-def test_dynamics_only_step_dispatches_one_op_for_dynamics_and_end(frame_ops):
+def test_dynamics_only_step_dispatches_one_op_for_dynamics_and_end(cpu_ops):
     """A dynamics-only native frame runs the fused frame op and no separate finish op; a frame
     with collisions keeps the finish op after them."""
     from torch.profiler import ProfilerActivity, profile
@@ -186,6 +186,6 @@ def test_dynamics_only_step_dispatches_one_op_for_dynamics_and_end(frame_ops):
         with profile(activities=[ProfilerActivity.CPU]) as prof:
             sim.step(state, poses[1])
         names[colliders is None] = {e.name for e in prof.events()}
-    assert "ams_torch_frame_cpu::frame_finish" in names[True] and "ams_torch::finish" not in names[True]
+    assert "ams_torch_cpu::frame_finish" in names[True] and "ams_torch::finish" not in names[True]
     assert "ams_torch::finish" in names[False]
-    assert names[False] & {"ams_torch_frame_cpu::frame", "ams_torch_frame_cpu::frame_contact"}  # contact="substep"
+    assert names[False] & {"ams_torch_cpu::frame", "ams_torch_cpu::frame_contact"}  # contact="substep"

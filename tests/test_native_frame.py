@@ -27,7 +27,9 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-from conftest import DEVICES, built_native, rel
+from conftest import DEVICES, rel
+from native_cases import (F32, F64, FRAME_CASES, case_scene, frame_args, make_scene, native_frame, native_ns,
+                          native_system, set_pinned)
 
 from ams_torch.apps.motion import Shake
 import ams_torch
@@ -41,7 +43,6 @@ from ams_torch.sim.stepping import resolve_pose
 from ams_torch.native import build as _native
 
 REPO = Path(__file__).resolve().parents[1]
-F64, F32 = torch.float64, torch.float32
 EPS32 = torch.finfo(F32).eps
 
 
@@ -49,86 +50,12 @@ EPS32 = torch.finfo(F32).eps
 # fixtures and input factories
 # ---------------------------------------------------------------------------------------
 
-def _native_ns(device: str):
-    kind = {"cpu": "frame_cpu", "cuda": "frame_cuda"}[device]
-    ns = _native.native_ops(kind)
-    if ns is None:
-        reason = _native.native_status()[kind]["reason"]
-        if device == "cuda" and reason.startswith("no CUDA toolkit"):
-            pytest.skip(reason)
-        raise AssertionError(f"native frame kernel ({kind}) failed to build: {reason}")
-    return ns
-
-
-def set_pinned(model, counts) -> None:
-    """Pin the first counts[s] particles of strand s (an int for all strands), on the model itself
-    (independent of how Params chooses the pinned root)."""
-    model.set_pinned(counts)
-
-
-def make_scene(dtype=F64, device="cpu", strands=13, particles=12, scenes=None, groom="sphere", seed=0,
-               jitter=1e-3, frame=3, num_pinned=2, **params):
-    """A simulator, a perturbed state at a shaken head pose and the next pose (with velocities).
-
-    scenes: None for one scene (state (S, N, 3)), or B for B scenes with different head motions.
-    jitter: m, random displacement of every particle (velocities get 100·jitter m/s), so springs
-    are stretched and segments turned. num_pinned: pinned root particles (set on the model).
-    Returns (sim, state, pose1).
-    """
-    rest = {"sphere": lambda: testing.sphere_groom(strands, particles, dtype=F64, seed=seed),
-            "wisp": lambda: testing.wisp(strands, particles, seed=seed),
-            "curly": lambda: testing.curly_strand(particles)}[groom]()
-    if params.get("material", "per_length") == "per_length":  # exercise the bend and torsion springs (off by default)
-        params = {"bend_rigidity": 3.2768e-11, "torsion_rigidity": 3.2768e-11, **params}
-    sim = ams_torch.Simulator(rest, ams_torch.Params(**params), dtype=dtype, device=device)
-    set_pinned(sim.model, num_pinned)
-    dt = sim.config.dt
-
-    def motion(b):
-        return Shake(amplitude=0.6 + 0.3 * b, frequency=1.5 + 0.5 * b, axis=(0.2 * b, 1.0, 0.1), translation=(0.05, 0.03 * b, 0.02)).poses(frame + 1, dt, dtype=dtype, device=device)
-
-    if scenes is None:
-        pose0, pose1 = motion(0)[frame - 1:frame + 1]
-    else:
-        ms = [motion(b) for b in range(scenes)]
-        pose0 = Pose.stack([m[frame - 1] for m in ms])
-        pose1 = Pose.stack([m[frame] for m in ms])
-    state = sim.initial_state(pose0)
-    g = torch.Generator().manual_seed(seed + 1)
-    noise = lambda scale: (scale * torch.randn(state.x.shape, generator=g, dtype=F64)).to(dtype=dtype,
-                                                                                               device=device)
-    state = state.replace(x=state.x + noise(jitter), v=state.v + noise(100 * jitter))
-    return sim, state, pose1
-
-
-def frame_args(sim, state, pose1, coeffs=None, config=None, hermite=True, external_force=None):
-    """The arguments of frame_dynamics / native_frame_dynamics."""
-    coeffs = coefficients(sim.model) if coeffs is None else coeffs
-    config = sim.config if config is None else config
-    return (sim.model, coeffs, config, state.x, state.v, state.ghost_rest, state.sag_offset, state.pose, pose1,
-            hermite, state.time, external_force)
-
 
 def torch_system(model, coeffs, config, x, v, ghost_rest, sag_offset, pose0, pose1, hermite, k,
                  external_force=None):
     """Substep k's system as frame_dynamics assembles it (the definition), at the state (x, v)."""
     return substep_system(model, coeffs, config, x, v, ghost_rest, sag_offset, pose0, pose1, hermite, k,
                           external_force)
-
-
-def native_system(ns, model, coeffs, config, x, v, ghost_rest, sag_offset, pose0, pose1, hermite, k,
-                  external_force=None):
-    args = native.op_arguments(model, coeffs, config, x, v, ghost_rest, sag_offset, pose0, pose1, hermite,
-                               external_force)
-    return ns.frame(*args, k)
-
-
-def native_frame(ns, model, coeffs, config, x, v, ghost_rest, sag_offset, pose0, pose1, hermite, time,
-                 external_force=None):
-    """One frame by the native kernel itself (never the fallback)."""
-    args = native.op_arguments(model, coeffs, config, x, v, ghost_rest, sag_offset, pose0, pose1, hermite,
-                               external_force)
-    return ns.frame(*args, -1)
 
 
 # ---------------------------------------------------------------------------------------
@@ -195,7 +122,7 @@ def _term_case(term: str, dtype=F64, num_pinned=2, substeps=2):
 
 
 @pytest.mark.parametrize("term", list(TERMS))
-def test_assembly_term_by_term(frame_ops, term):
+def test_assembly_term_by_term(cpu_ops, term):
     """Each term alone (and all together): native blocks and rhs of a substep equal the torch
     definition's to 1e-12 relative, measured on the term's own contribution."""
     sim, state, pose1, coeffs, config, ext = _term_case(term)
@@ -208,7 +135,7 @@ def test_assembly_term_by_term(frame_ops, term):
     args = (sim.model, coeffs, config, state.x, state.v, state.ghost_rest, state.sag_offset, state.pose, pose1, True)
     for k in (0, 1):  # the first substep (start pose) and the last (end pose exactly)
         ref_b, ref_r = torch_system(*args, k, ext)
-        nat_b, nat_r = native_system(frame_ops, *args, k, ext)
+        nat_b, nat_r = native_system(cpu_ops, *args, k, ext)
         base_b, base_r = torch_system(base_model, base_coeffs, base_config, *args[3:], k, None)
         assert nat_b.shape == ref_b.shape and nat_r.shape == ref_r.shape
         for what, nat, ref, base in (("blocks", nat_b, ref_b, base_b), ("rhs", nat_r, ref_r, base_r)):
@@ -221,7 +148,7 @@ def test_assembly_term_by_term(frame_ops, term):
         assert (ref_b - base_b).abs().max() > 0 or (ref_r - base_r).abs().max() > 0, "term had no effect"
 
 
-def test_nonhookean_case_covers_every_branch(frame_ops):
+def test_nonhookean_case_covers_every_branch(cpu_ops):
     """The non-Hookean term-by-term state has particles in the Hookean, soft and yield ranges."""
     sim, state, _, coeffs, _, _ = _term_case("integrity_nonhookean")
     anchor = state.pose.to_world(state.ghost_rest) - state.pose.rotate(state.sag_offset)
@@ -231,11 +158,11 @@ def test_nonhookean_case_covers_every_branch(frame_ops):
 
 
 @pytest.mark.parametrize("num_pinned", [0, 1, 2, 3])
-def test_assembly_pinned_rows(frame_ops, num_pinned):
+def test_assembly_pinned_rows(cpu_ops, num_pinned):
     sim, state, pose1, coeffs, config, ext = _term_case("all", num_pinned=num_pinned)
     args = (sim.model, coeffs, config, state.x, state.v, state.ghost_rest, state.sag_offset, state.pose, pose1, True)
     ref_b, ref_r = torch_system(*args, 0, ext)
-    nat_b, nat_r = native_system(frame_ops, *args, 0, ext)
+    nat_b, nat_r = native_system(cpu_ops, *args, 0, ext)
     assert rel(nat_b, ref_b) <= 1e-12 and rel(nat_r, ref_r) <= 1e-12
 
 
@@ -243,56 +170,24 @@ def test_assembly_pinned_rows(frame_ops, num_pinned):
 # one frame
 # ---------------------------------------------------------------------------------------
 
-FRAME_CASES = {
-    # name: Params changes; "scale": factors applied to coefficient terms (independent of how the
-    # material is parametrised)
-    "default": {},
-    "substeps3": {"substeps": 3},
-    "nonhookean": {"integrity_model": "nonhookean", "integrity_transition": 0.2, "integrity_break": 0.5},
-    "geometric": {"geometric_stiffness": True},
-    "one_particle_angular": {"angular_reaction": False},
-    "explicit_angular": {"implicit_angular": False},
-    "no_inextensibility": {"inextensibility": False, "substeps": 2},
-    "no_pins": {"num_pinned": 0},
-    "one_pin": {"num_pinned": 1},
-    "three_pins": {"num_pinned": 3},
-    "zero_edge": {"scale": {"edge": 0.0}},
-    "zero_bend_torsion": {"scale": {"bend": 0.0, "torsion": 0.0}},
-    "zero_integrity": {"scale": {"integrity": 0.0}},
-    "zero_angular": {"scale": {"angular": 0.0}},
-    "zero_drag": {"scale": {"drag": 0.0}},
-    "stiff": {"scale": {"edge": 30.0, "bend": 30.0, "torsion": 30.0}, "substeps": 2},
-    "ftl_no_damping": {"ftl_damping": 0.0},
-}
-
-
-def case_scene(case: str, **kw):
-    """make_scene for FRAME_CASES[case]; returns (sim, state, pose1, coeffs)."""
-    params = dict(FRAME_CASES[case])
-    scale = params.pop("scale", {})
-    params.update(kw)
-    sim, state, pose1 = make_scene(**params)
-    c = coefficients(sim.model)
-    return sim, state, pose1, c._replace(**{k: getattr(c, k) * v for k, v in scale.items()})
-
 
 @pytest.mark.parametrize("case", list(FRAME_CASES))
-def test_frame_float64(frame_ops, case):
+def test_frame_float64(cpu_ops, case):
     sim, state, pose1, coeffs = case_scene(case, jitter=2e-3)
     args = frame_args(sim, state, pose1, coeffs)
     x_ref, v_ref = frame_dynamics(*args)
-    x_nat, v_nat = native_frame(frame_ops, *args)
+    x_nat, v_nat = native_frame(cpu_ops, *args)
     assert rel(x_nat, x_ref) <= 1e-10 and rel(v_nat, v_ref) <= 1e-10, (rel(x_nat, x_ref), rel(v_nat, v_ref))
 
 
 @pytest.mark.parametrize("hermite", [True, False])
 @pytest.mark.parametrize("scenes", [None, 3])
-def test_frame_scenes_and_hermite(frame_ops, hermite, scenes):
+def test_frame_scenes_and_hermite(cpu_ops, hermite, scenes):
     """B > 1 scenes with different head motions, each pose per scene; Hermite on and off."""
     sim, state, pose1 = make_scene(scenes=scenes, substeps=3, jitter=2e-3)
     args = frame_args(sim, state, pose1, hermite=hermite)
     x_ref, v_ref = frame_dynamics(*args)
-    x_nat, v_nat = native_frame(frame_ops, *args)
+    x_nat, v_nat = native_frame(cpu_ops, *args)
     assert x_nat.shape == state.x.shape
     assert rel(x_nat, x_ref) <= 1e-10 and rel(v_nat, v_ref) <= 1e-10
     if scenes:  # every scene right on its own (a wrong pose index would be a scene's whole motion)
@@ -300,7 +195,7 @@ def test_frame_scenes_and_hermite(frame_ops, hermite, scenes):
             assert rel(x_nat[b], x_ref[b]) <= 1e-10
 
 
-def test_frame_scenes_with_one_start_pose(frame_ops):
+def test_frame_scenes_with_one_start_pose(cpu_ops):
     """B scenes from one shared start pose (pose batch ()) to per-scene end poses."""
     sim, state, pose1 = make_scene(scenes=2, substeps=2)
     shared = Pose(state.pose.rotation[0], state.pose.translation[0], state.pose.linear_velocity[0],
@@ -308,29 +203,29 @@ def test_frame_scenes_with_one_start_pose(frame_ops):
     state = state.replace(pose=shared)
     args = frame_args(sim, state, pose1)
     x_ref, v_ref = frame_dynamics(*args)
-    x_nat, v_nat = native_frame(frame_ops, *args)
+    x_nat, v_nat = native_frame(cpu_ops, *args)
     assert rel(x_nat, x_ref) <= 1e-10 and rel(v_nat, v_ref) <= 1e-10
 
 
 @pytest.mark.parametrize("groom,strands,particles", [("wisp", 9, 4), ("curly", 1, 30), ("sphere", 17, 5)])
-def test_frame_small_strands(frame_ops, groom, strands, particles):
+def test_frame_small_strands(cpu_ops, groom, strands, particles):
     """4-particle strands (the minimum), one lone strand, and a strand count that is not a
     multiple of the SIMD width (the padded group)."""
     sim, state, pose1 = make_scene(groom=groom, strands=strands, particles=particles, substeps=2)
     args = frame_args(sim, state, pose1)
     x_ref, v_ref = frame_dynamics(*args)
-    x_nat, v_nat = native_frame(frame_ops, *args)
+    x_nat, v_nat = native_frame(cpu_ops, *args)
     assert rel(x_nat, x_ref) <= 1e-10 and rel(v_nat, v_ref) <= 1e-10
 
 
-def test_frame_per_strand_pinned_counts(frame_ops):
+def test_frame_per_strand_pinned_counts(cpu_ops):
     """num_pinned differs between strands (and so between SIMD lanes of one group)."""
     sim, state, pose1 = make_scene(strands=11, particles=9, substeps=2)
     counts = torch.tensor([0, 1, 2, 3, 2, 1, 0, 3, 2, 2, 1], dtype=torch.int64)
     set_pinned(sim.model, counts)
     args = frame_args(sim, state, pose1)
     x_ref, v_ref = frame_dynamics(*args)
-    x_nat, v_nat = native_frame(frame_ops, *args)
+    x_nat, v_nat = native_frame(cpu_ops, *args)
     assert rel(x_nat, x_ref) <= 1e-10 and rel(v_nat, v_ref) <= 1e-10
     # pinned particles land exactly on their targets, the free ones do not
     target = pose1.to_world(sim.model.rest_positions)
@@ -339,7 +234,7 @@ def test_frame_per_strand_pinned_counts(frame_ops):
             torch.testing.assert_close(x_nat[s, :p], target[s, :p], rtol=0, atol=1e-15)
 
 
-def test_frame_nonhookean_yielding(frame_ops):
+def test_frame_nonhookean_yielding(cpu_ops):
     """Particles pulled beyond the breaking point (the yield branch and its slope ρ): half of them."""
     sim, state, pose1 = make_scene(jitter=6e-3, integrity_model="nonhookean", substeps=2)
     anchor = state.pose.to_world(state.ghost_rest) - state.pose.rotate(state.sag_offset)
@@ -349,18 +244,18 @@ def test_frame_nonhookean_yielding(frame_ops):
                         breaking=torch.quantile(e, 0.5).to(c.breaking.dtype))
     args = frame_args(sim, state, pose1, coeffs)
     x_ref, v_ref = frame_dynamics(*args)
-    x_nat, v_nat = native_frame(frame_ops, *args)
+    x_nat, v_nat = native_frame(cpu_ops, *args)
     assert rel(x_nat, x_ref) <= 1e-10 and rel(v_nat, v_ref) <= 1e-10
 
 
 @pytest.mark.parametrize("shape", ["full", "broadcast"])
-def test_frame_external_force(frame_ops, shape):
+def test_frame_external_force(cpu_ops, shape):
     sim, state, pose1 = make_scene(scenes=2, substeps=2)
     g = torch.Generator().manual_seed(3)
     force = 2e-5 * torch.randn(state.x.shape if shape == "full" else state.x.shape[1:], generator=g, dtype=F64)
     args = frame_args(sim, state, pose1, external_force=force)
     x_ref, v_ref = frame_dynamics(*args)
-    x_nat, v_nat = native_frame_dynamics_checked(frame_ops, args)
+    x_nat, v_nat = native_frame_dynamics_checked(cpu_ops, args)
     assert rel(x_nat, x_ref) <= 1e-10 and rel(v_nat, v_ref) <= 1e-10
     x_free, _ = frame_dynamics(*args[:-1], None)
     assert rel(x_nat, x_free) > 1e-8  # the force did something
@@ -375,13 +270,13 @@ def native_frame_dynamics_checked(ns, args):
 
 
 @pytest.mark.parametrize("case", ["default", "nonhookean", "stiff"])
-def test_frame_float32(frame_ops, case):
+def test_frame_float32(cpu_ops, case):
     """float32: no farther from the float64 frame than twice the torch float32 frame (module doc)."""
     out = {}
     for dtype in (F32, F64):
         sim, state, pose1, coeffs = case_scene(case, dtype=dtype, strands=21, particles=16)
         args = frame_args(sim, state, pose1, coeffs)
-        out[dtype] = frame_dynamics(*args), native_frame(frame_ops, *args)
+        out[dtype] = frame_dynamics(*args), native_frame(cpu_ops, *args)
     (x64, v64), _ = out[F64]
     (x_t, v_t), (x_n, v_n) = out[F32]
     assert x_n.dtype == F32
@@ -390,7 +285,7 @@ def test_frame_float32(frame_ops, case):
         assert rel(nat, ref) <= bound, f"{case} {name}: native {rel(nat, ref):.3g}, torch {rel(tor, ref):.3g}"
 
 
-def test_sixty_frames_of_a_shaken_groom(frame_ops):
+def test_sixty_frames_of_a_shaken_groom(cpu_ops):
     """60 frames of a shaken groom, float64, each path fed its own output: the native trajectory
     stays on the torch one (report: the max difference, in metres)."""
     rest = testing.sphere_groom(24, 16, dtype=F64)
@@ -405,7 +300,7 @@ def test_sixty_frames_of_a_shaken_groom(frame_ops):
         for name in xs:
             x, v = xs[name]
             a = (sim.model, coeffs, sim.config, x, v, state.ghost_rest, state.sag_offset, p0, p1, True, state.time)
-            xs[name] = frame_dynamics(*a) if name == "torch" else native_frame(frame_ops, *a)
+            xs[name] = frame_dynamics(*a) if name == "torch" else native_frame(cpu_ops, *a)
         worst = max(worst, (xs["native"][0] - xs["torch"][0]).abs().max().item())
     moved = (xs["torch"][0] - state.x).abs().max().item()
     print(f"60 frames: max |x_native - x_torch| = {worst:.3g} m (motion {moved:.3g} m)")
@@ -413,7 +308,7 @@ def test_sixty_frames_of_a_shaken_groom(frame_ops):
     assert worst <= 1e-10
 
 
-def test_poses_without_velocities_through_the_simulator(frame_ops):
+def test_poses_without_velocities_through_the_simulator(cpu_ops):
     """A control pose without velocities: the simulator's pose resolution gives the end pose its
     velocities and linear interpolation (hermite False); native equals torch from there. Passing
     the pose without velocities and hermite=True is the same (Pose.interpolate's own rule)."""
@@ -423,40 +318,40 @@ def test_poses_without_velocities_through_the_simulator(frame_ops):
     assert not hermite
     args = frame_args(sim, state, resolved, hermite=hermite)
     x_ref, v_ref = frame_dynamics(*args)
-    x_nat, v_nat = native_frame_dynamics_checked(frame_ops, args)
+    x_nat, v_nat = native_frame_dynamics_checked(cpu_ops, args)
     assert rel(x_nat, x_ref) <= 1e-10 and rel(v_nat, v_ref) <= 1e-10
     args = frame_args(sim, state, bare, hermite=True)
     x_ref2, _ = frame_dynamics(*args)
-    x_nat2, _ = native_frame_dynamics_checked(frame_ops, args)
+    x_nat2, _ = native_frame_dynamics_checked(cpu_ops, args)
     assert torch.equal(x_ref2, x_ref) and rel(x_nat2, x_ref) <= 1e-10
     # and a whole simulator step from there uses that resolution
     new = sim.step(state, bare)
     assert torch.isfinite(new.x).all()
 
 
-def test_batched_equals_one_at_a_time(frame_ops):
+def test_batched_equals_one_at_a_time(cpu_ops):
     """Every SIMD lane computes the same bits as a lone strand."""
     sim, state, pose1 = make_scene(strands=11, particles=8, substeps=2)
     args = frame_args(sim, state, pose1)
-    x_all, v_all = native_frame(frame_ops, *args)
+    x_all, v_all = native_frame(cpu_ops, *args)
     for s in (0, 5, 10):
         one = ams_torch.Simulator(sim.model.rest_positions[s:s + 1], sim.params, dtype=F64)
         set_pinned(one.model, 2)
         st = state.replace(x=state.x[s:s + 1], v=state.v[s:s + 1], ghost_rest=state.ghost_rest[s:s + 1],
                            sag_offset=state.sag_offset[s:s + 1])
-        x1, v1 = native_frame(frame_ops, *frame_args(one, st, pose1))
+        x1, v1 = native_frame(cpu_ops, *frame_args(one, st, pose1))
         assert torch.equal(x1[0], x_all[s]) and torch.equal(v1[0], v_all[s]), s
 
 
-def test_thread_count_does_not_change_results(frame_ops):
+def test_thread_count_does_not_change_results(cpu_ops):
     sim, state, pose1 = make_scene(strands=40, particles=8, scenes=2)
     args = frame_args(sim, state, pose1)
     threads = torch.get_num_threads()
     try:
         torch.set_num_threads(1)
-        one = native_frame(frame_ops, *args)
+        one = native_frame(cpu_ops, *args)
         torch.set_num_threads(2)
-        two = native_frame(frame_ops, *args)
+        two = native_frame(cpu_ops, *args)
     finally:
         torch.set_num_threads(threads)
     assert torch.equal(one[0], two[0]) and torch.equal(one[1], two[1])
@@ -466,13 +361,13 @@ def test_thread_count_does_not_change_results(frame_ops):
 # dispatch: the entry point, fallbacks, the registered ops
 # ---------------------------------------------------------------------------------------
 
-def test_entry_point_dispatch(frame_ops):
+def test_entry_point_dispatch(cpu_ops):
     sim, state, pose1 = make_scene(substeps=2)
     args = frame_args(sim, state, pose1)
     assert native.native_frame_available("cpu", F64) and native.native_frame_available("cpu", F32)
     assert not native.native_frame_available("cpu", torch.float16)
     assert native.native_frame_supported(*args[:2], *args[3:9], None)
-    native_frame_dynamics_checked(frame_ops, args)
+    native_frame_dynamics_checked(cpu_ops, args)
     # a callable external force: the torch path, exactly
     force = lambda x, v, t: 1e-5 * torch.ones_like(x)
     cargs = args[:-1] + (force,)
@@ -482,7 +377,7 @@ def test_entry_point_dispatch(frame_ops):
     assert torch.equal(x_c, x_t) and torch.equal(v_c, v_t)
 
 
-def test_gradients_stay_on_the_torch_definition(frame_ops):
+def test_gradients_stay_on_the_torch_definition(cpu_ops):
     sim, state, pose1 = make_scene(substeps=1, strands=5, particles=6)
     v = state.v.clone().requires_grad_()
     args = frame_args(sim, state.replace(v=v), pose1)
@@ -508,8 +403,8 @@ def test_op_default_is_the_torch_definition():
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_opcheck(frame_ops, device):
-    _native_ns(device)
+def test_opcheck(cpu_ops, device):
+    native_ns(device)
     for dtype, kw in ((F64, {"integrity_model": "nonhookean"}), (F32, {"angular_reaction": False})):
         sim, state, pose1 = make_scene(dtype=dtype, device=device, strands=5, particles=6, scenes=2, substeps=2, **kw)
         g = torch.Generator().manual_seed(5)
@@ -522,7 +417,7 @@ def test_opcheck(frame_ops, device):
         torch.library.opcheck(torch.ops.ams_torch.frame_assembly.default, op_args + (1,))
 
 
-def test_torch_compile_fullgraph(frame_ops):
+def test_torch_compile_fullgraph(cpu_ops):
     sim, state, pose1 = make_scene(dtype=F32, strands=9, particles=8, substeps=2)
     coeffs = coefficients(sim.model)
 
@@ -539,7 +434,7 @@ def test_torch_compile_fullgraph(frame_ops):
     assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
 
 
-def test_op_counts(frame_ops):
+def test_op_counts(cpu_ops):
     """One frame of the entry point is one registered op (plus the two outputs it allocates),
     independent of the number of strands."""
     from torch.profiler import ProfilerActivity, profile
@@ -565,8 +460,7 @@ _FALLBACK_SCRIPT = textwrap.dedent(
     sys.path.insert(0, {tests!r})
     os.environ["AMS_TORCH_NATIVE"] = "0"
     import torch
-    from test_native_frame import make_scene, frame_args
-    from test_native_collide import make_case
+    from native_cases import make_scene, frame_args, make_case
     from ams_torch.sim import native
     from ams_torch.sim.dynamics import frame_dynamics
     from ams_torch.sim.stepping import collisions
@@ -586,8 +480,8 @@ _FALLBACK_SCRIPT = textwrap.dedent(
     rel = max(((x_n - x_t).norm() / x_t.norm()).item(), ((v_n - v_t).norm() / v_t.norm()).item())
     ours = [w for w in caught if issubclass(w.category, build.NativeBuildWarning)]
     st = build.native_status()
-    print(json.dumps(dict(rel=rel, warnings=len(ours), built=st["frame_cpu"]["built"] or st["collide_cpu"]["built"],
-                          reason=st["frame_cpu"]["reason"],
+    print(json.dumps(dict(rel=rel, warnings=len(ours), built=st["cpu"]["built"],
+                          reason=st["cpu"]["reason"],
                           available=native.native_frame_available("cpu", torch.float64)
                           or native.native_collisions_available("cpu", torch.float64),
                           collide_same=bool(torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])))))
@@ -616,15 +510,15 @@ def test_fallback_without_native(tmp_path):
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 @pytest.mark.parametrize("case", ["default", "nonhookean", "one_particle_angular", "three_pins"])
 @pytest.mark.parametrize("dtype", [F64, F32])
-def test_cuda_matches_cpu(frame_ops, case, dtype):
+def test_cuda_matches_cpu(cpu_ops, case, dtype):
     """The CUDA kernel runs frame.h's arithmetic: equal to the CPU kernel to rounding, and the
     assembled system too."""
-    ns_cuda = _native_ns("cuda")
+    ns_cuda = native_ns("cuda")
     out = {}
     for device in ("cpu", "cuda"):
         sim, state, pose1, coeffs = case_scene(case, dtype=dtype, device=device, scenes=2, strands=37)
         args = frame_args(sim, state, pose1, coeffs)
-        ns = frame_ops if device == "cpu" else ns_cuda
+        ns = cpu_ops if device == "cpu" else ns_cuda
         out[device] = native_frame(ns, *args), native_system(ns, *args[:10], 1)
     tol = 1e-12 if dtype == F64 else 1e-5
     (xc, vc), (bc, rc) = out["cpu"]

@@ -2,7 +2,7 @@
 the sparse torch path vs native CPU vs CUDA, per stage and for the whole stage; the capacity and
 its overflow flag; edge cases; op registration; backend selection and fallback.
 
-The native CPU kernels are built once per session (``grid_ops`` fixture in conftest; cached across runs in
+The native CPU kernels are built once per session (``cpu_ops`` fixture in conftest; cached across runs in
 ``~/.cache/ams_torch`` or ``$AMS_TORCH_CACHE``); CUDA cases run only where a GPU is visible.
 
 Tolerances (max |native − torch| / max |torch| per quantity):
@@ -29,7 +29,8 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import DEVICES, built_native
+from conftest import DEVICES
+from native_cases import DT, F64_REL, MASS, solve_args, squeeze_scene, tol
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from ams_torch.geometry.pose import Pose
@@ -45,78 +46,25 @@ from ams_torch.stages.hair_hair.transfer import cell_mass, face_views, g2p_torch
 
 REPO = Path(__file__).resolve().parents[1]
 DTYPES = [torch.float64, torch.float32]
-MASS = 1e-6
-DT = 1.0 / 60.0
-F64_REL = 1e-10
-
-
-def f32_rel(r: int) -> float:
-    return 8 * r * torch.finfo(torch.float32).eps
 
 
 def _namespace(device: str):
     if device == "cpu":
-        return _native.native_ops("grid_cpu")
-    ns = _native.native_ops("grid_cuda")
-    st = _native.native_status()["grid_cuda"]
+        return _native.native_ops("cpu")
+    ns = _native.native_ops("cuda")
+    st = _native.native_status()["cuda"]
     if ns is None and st["reason"].startswith("no CUDA toolkit"):
         pytest.skip(st["reason"])
     assert ns is not None, f"native CUDA grid kernels failed to build: {st['reason']}"
     return ns
 
 
-# -- input factory (also used by scripts/bench_hair_hair.py) ---------------------------------
-def squeeze_scene(dtype=torch.float64, device="cpu", strands=200, particles=10, resolution=24, scenes=2, squeeze=0.85,
-                  jitter=1.5e-3, outside=True, seed=0, **config):
-    """A head groom squeezed toward the head (density above the target: pressure active), in
-    ``scenes`` differently moving scenes, with random velocities and masses, two pinned particles
-    per strand and (``outside``) some particles far outside the grid and some half outside.
-    The grid: ``HairHair(resolution, **config)`` fitted to the rest groom (target from it).
-
-    Returns dict: grid, x, v (B, S, N, 3), mass (B, S, N) kg, pose (batch B), free (N,) bool, and
-    the flattened op inputs xf, vf (B, P, 3), m (B, P), frame (B, 6, 3), dt (0-d tensor).
-    """
-    g = torch.Generator().manual_seed(seed)
-    rest = head_groom(strands, particles, seed=seed, dtype=torch.float64)
-    grid = HairHair(resolution=resolution, **config).build(rest, MASS)
-    local = rest[None] * squeeze + jitter * torch.randn((scenes,) + rest.shape, generator=g, dtype=torch.float64)
-    if outside:
-        far = grid.origin + grid.extent * torch.tensor([1.3, 0.5, 0.5], dtype=torch.float64)
-        local[:, :5, -1] = far  # fully outside
-        local[:, 5:10, -1, 0] = grid.origin[0] - 0.4 * grid.cell_size  # half outside (x face grid)
-        local[:, 10:12, -1, 1] = grid.origin[1] + grid.extent + 0.3 * grid.cell_size
-    rot = torch.randn(scenes, 3, generator=g, dtype=torch.float64) * 0.4
-    pose = Pose.from_rotvec(rot, torch.randn(scenes, 3, generator=g, dtype=torch.float64),
-                            torch.randn(scenes, 3, generator=g, dtype=torch.float64),
-                            torch.randn(scenes, 3, generator=g, dtype=torch.float64), dtype=torch.float64)
-    x = pose.to_world(local.reshape(scenes, -1, 3)).reshape(local.shape)
-    v = pose.velocity_at(x.reshape(scenes, -1, 3)).reshape(x.shape)
-    v = v + 0.3 * torch.randn(x.shape, generator=g, dtype=torch.float64)
-    mass = MASS * (0.5 + torch.rand(x.shape[:-1], generator=g, dtype=torch.float64))
-    free = torch.ones(particles, dtype=torch.bool)
-    free[:2] = False
-    grid = grid.to(device=device, dtype=dtype)
-    pose = pose.to(device=device, dtype=dtype)
-    x, v, mass, free = (t.to(device) for t in (x.to(dtype), v.to(dtype), mass.to(dtype), free))
-    b, p = scenes, strands * particles
-    return dict(grid=grid, x=x, v=v, mass=mass, pose=pose, free=free, xf=x.reshape(b, p, 3), vf=v.reshape(b, p, 3),
-                m=mass.reshape(b, p), frame=scene_frame(pose, (scenes,), b, dtype, device).contiguous(),
-                dt=torch.full((), DT, dtype=dtype, device=device))
-
-
 # -- helpers -------------------------------------------------------------------------------
-def _solve_args(grid):
-    cfg = grid.config
-    return cfg.pressure_iterations, cfg.jacobi_omega, cfg.volume_stiffness, 1.0 - cfg.flip
 
 
 def rel(a: torch.Tensor, ref: torch.Tensor) -> float:
     scale = ref.abs().max()
     return float((a - ref).abs().max() / scale) if scale > 0 else float((a - ref).abs().max())
-
-
-def tol(dtype, r):
-    return F64_REL if dtype == torch.float64 else f32_rel(r)
 
 
 def _check_positions(x_new, x_ref, x_in, dtype, r):
@@ -134,7 +82,7 @@ def dense_stage(s):
     """The grid part of the stage by the dense definition (transfer.py, pressure.py): x', v' (B, P, 3)."""
     grid = s["grid"]
     h, r = grid.cell_size, grid.resolution
-    _, field = pressure_torch(dense_faces(s), grid.target_density, s["dt"], h, r, *_solve_args(grid))
+    _, field = pressure_torch(dense_faces(s), grid.target_density, s["dt"], h, r, *solve_args(grid))
     return g2p_torch(s["xf"], s["vf"], field, s["frame"], grid.origin, s["free"], s["dt"], h, r, 1 - grid.config.flip)
 
 
@@ -158,9 +106,9 @@ def test_sparse_torch_path_equals_the_dense_definition(resolution):
     assert int(count.max()) * 64 < 0.6 * r ** 3 or r < 16  # the pool holds the hair, not the box
     ref = dense_faces(s)
     assert rel(densify(faces, blocks, r), ref) <= 1e-14
-    phi_d, field_d = pressure_torch(ref, grid.target_density, s["dt"], h, r, *_solve_args(grid))
+    phi_d, field_d = pressure_torch(ref, grid.target_density, s["dt"], h, r, *solve_args(grid))
     phi_s, field_s, over = pressure_sparse(faces, table, blocks, count, grid.target_density, s["dt"], h, r,
-                                           *_solve_args(grid), grid.active_capacity)
+                                           *solve_args(grid), grid.active_capacity)
     assert not bool(over.any())
     assert int((phi_d > 0).sum()) > 5
     assert rel(densify(phi_s, blocks, r), phi_d) <= 1e-14
@@ -174,7 +122,7 @@ def test_sparse_torch_path_equals_the_dense_definition(resolution):
 # -- per-stage parity ------------------------------------------------------------------------
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("dtype", DTYPES)
-def test_p2g_parity(grid_ops, device, dtype):
+def test_p2g_parity(cpu_ops, device, dtype):
     ns = _namespace(device)
     s = squeeze_scene(dtype, device)
     grid = s["grid"]
@@ -200,7 +148,7 @@ def test_p2g_parity(grid_ops, device, dtype):
 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("dtype", DTYPES)
-def test_pressure_parity_dense_squeeze(grid_ops, device, dtype):
+def test_pressure_parity_dense_squeeze(cpu_ops, device, dtype):
     ns = _namespace(device)
     s = squeeze_scene(dtype, device)
     grid = s["grid"]
@@ -209,9 +157,9 @@ def test_pressure_parity_dense_squeeze(grid_ops, device, dtype):
     ref = dense_faces(s)
     rho = cell_mass(face_views(ref[..., 0], r)) / h ** 3
     assert float(rho.max()) > 1.2 * float(grid.target_density)  # the squeeze is above the target
-    phi_t, field_t = pressure_torch(ref, grid.target_density, s["dt"], h, r, *_solve_args(grid))
+    phi_t, field_t = pressure_torch(ref, grid.target_density, s["dt"], h, r, *solve_args(grid))
     phi_n, field_n, *_ = ns.pressure(faces, table, blocks, count, grid.target_density, s["dt"], h, r,
-                                     *_solve_args(grid), grid.active_capacity)
+                                     *solve_args(grid), grid.active_capacity)
     assert int((phi_t > 0).sum()) > 20  # pressure active in many cells, in both scenes
     assert bool((phi_t.flatten(1).amax(1) > 0).all())
     assert rel(densify(phi_n, blocks, r), phi_t) <= tol(dtype, r)
@@ -225,14 +173,14 @@ def test_pressure_parity_dense_squeeze(grid_ops, device, dtype):
 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("dtype", DTYPES)
-def test_g2p_parity(grid_ops, device, dtype):
+def test_g2p_parity(cpu_ops, device, dtype):
     ns = _namespace(device)
     s = squeeze_scene(dtype, device)
     grid = s["grid"]
     h, r = grid.cell_size, grid.resolution
     faces, table, blocks, count = sparse_pool(s)
     _, field, *_ = pressure_sparse(faces, table, blocks, count, grid.target_density, s["dt"], h, r,
-                                   *_solve_args(grid))
+                                   *solve_args(grid))
     args = (s["xf"], s["vf"], field, table, s["frame"], grid.origin, s["free"], s["dt"], h, r, 0.05)
     x_t, v_t = g2p_sparse(*args)
     x_n, v_n = ns.g2p(*args)
@@ -249,7 +197,7 @@ def test_g2p_parity(grid_ops, device, dtype):
     assert torch.equal(v_n[:, far], s["vf"][:, far]) and torch.equal(v_t[:, far], s["vf"][:, far])
 
 
-def test_sweeps_visit_only_what_phi_can_reach_with_the_full_sweeps_values(grid_ops):
+def test_sweeps_visit_only_what_phi_can_reach_with_the_full_sweeps_values(cpu_ops):
     """Two wisps far apart: one squeezed (pushing cells), one at rest (active cells that never
     push). The CPU kernel sweeps only the slots φ can reach; φ everywhere, including the resting
     wisp's active cells (0), is what sweeping every cell gives (the torch path), in float64."""
@@ -267,7 +215,7 @@ def test_sweeps_visit_only_what_phi_can_reach_with_the_full_sweeps_values(grid_o
     faces, table, blocks, count = p2g_sparse(xf, vf, m, frame, grid.origin, h, r, grid.capacity)
     args = (grid.target_density, dt, h, r, 50, 0.6, 1.0, 0.05)
     phi_t, field_t, *_ = pressure_sparse(faces, table, blocks, count, *args)
-    phi_n, field_n, *_ = grid_ops.pressure(faces, table, blocks, count, *args, grid.active_capacity)
+    phi_n, field_n, *_ = cpu_ops.pressure(faces, table, blocks, count, *args, grid.active_capacity)
     used = blocks[0] >= 0
     assert torch.equal(phi_n[0, used] > 0, phi_t[0, used] > 0)
     assert rel(phi_n[0, used], phi_t[0, used]) <= 1e-13 and rel(field_n[0, used], field_t[0, used]) <= 1e-13
@@ -286,7 +234,7 @@ def test_sweeps_visit_only_what_phi_can_reach_with_the_full_sweeps_values(grid_o
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("detailed", [False, True])
-def test_stage_parity(grid_ops, device, dtype, detailed):
+def test_stage_parity(cpu_ops, device, dtype, detailed):
     _namespace(device)
     s = squeeze_scene(dtype, device, strands=120, detailed_collisions=detailed, collision_radius=3e-3)
     grid = s["grid"]
@@ -313,7 +261,7 @@ def test_stage_parity(grid_ops, device, dtype, detailed):
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_leading_scene_dims(grid_ops, device):
+def test_leading_scene_dims(cpu_ops, device):
     _namespace(device)
     s = squeeze_scene(torch.float64, device, strands=60, scenes=6)
     x, v, m = (t.reshape(2, 3, *t.shape[1:]) for t in (s["x"], s["v"], s["mass"]))
@@ -329,7 +277,7 @@ def test_leading_scene_dims(grid_ops, device):
 # -- capacity --------------------------------------------------------------------------------
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("backend", ["torch", "native"])
-def test_capacity_overflow_is_flagged_never_silent(grid_ops, device, backend):
+def test_capacity_overflow_is_flagged_never_silent(cpu_ops, device, backend):
     """A pool one block short of the hair: the flag is set (on the device) and the count says how
     many blocks the hair needed; a pool that just fits gives the whole-grid result exactly."""
     _namespace(device)
@@ -355,7 +303,7 @@ def test_capacity_overflow_is_flagged_never_silent(grid_ops, device, backend):
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_active_cell_capacity(grid_ops, device):
+def test_active_cell_capacity(cpu_ops, device):
     """The torch path sweeps a list of the active cells (a static capacity, so its cost is not the
     pool's): with room for exactly the active cells it gives the values of sweeping every cell;
     one short, both paths flag the overflow (the kernels count the same active cells)."""
@@ -364,7 +312,7 @@ def test_active_cell_capacity(grid_ops, device):
     grid = s["grid"]
     h, r = grid.cell_size, grid.resolution
     faces, table, blocks, count = sparse_pool(s)
-    args = (grid.target_density, s["dt"], h, r, *_solve_args(grid))
+    args = (grid.target_density, s["dt"], h, r, *solve_args(grid))
     active = active_cells(faces, table, blocks, grid.target_density, h, r)
     need = int(active.max())
     assert int(active.min()) > 20
@@ -408,7 +356,7 @@ def test_pool_follows_the_hair_not_the_box():
 # -- edge cases ------------------------------------------------------------------------------
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("dtype", DTYPES)
-def test_no_cell_above_target_gives_exactly_zero_phi(grid_ops, device, dtype):
+def test_no_cell_above_target_gives_exactly_zero_phi(cpu_ops, device, dtype):
     """A groom at its rest shape (target = 1.1 × its peak density): φ is exactly 0 on both paths
     (the native kernels skip the sweeps), so the field is the PIC share alone."""
     ns = _namespace(device)
@@ -419,9 +367,9 @@ def test_no_cell_above_target_gives_exactly_zero_phi(grid_ops, device, dtype):
     ref = dense_faces(s)
     rho = cell_mass(face_views(ref[..., 0], r)) / h ** 3
     assert 0.5 * float(grid.target_density) < float(rho.max()) < float(grid.target_density)
-    phi_t, field_t = pressure_torch(ref, grid.target_density, s["dt"], h, r, *_solve_args(grid))
+    phi_t, field_t = pressure_torch(ref, grid.target_density, s["dt"], h, r, *solve_args(grid))
     phi_n, field_n, *_ = ns.pressure(faces, table, blocks, count, grid.target_density, s["dt"], h, r,
-                                     *_solve_args(grid), grid.active_capacity)
+                                     *solve_args(grid), grid.active_capacity)
     phi_n, field_n = densify(phi_n, blocks, r), densify(field_n, blocks, r)
     assert bool((phi_t == 0).all()) and bool((phi_n == 0).all())
     vel = torch.where(ref[..., 0] > 0, ref[..., 1] / ref[..., 0].clamp_min(1e-300), torch.zeros_like(ref[..., 0]))
@@ -430,7 +378,7 @@ def test_no_cell_above_target_gives_exactly_zero_phi(grid_ops, device, dtype):
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_empty_grid(grid_ops, device):
+def test_empty_grid(cpu_ops, device):
     """Every particle outside the grid: no block is used, and (x, v) come back unchanged."""
     ns = _namespace(device)
     s = squeeze_scene(torch.float64, device, strands=30, outside=False)
@@ -439,7 +387,7 @@ def test_empty_grid(grid_ops, device):
     h, r = grid.cell_size, grid.resolution
     faces, table, blocks, count = ns.p2g(xf, s["vf"], s["m"], s["frame"], grid.origin, h, r, grid.capacity)
     assert bool((count == 0).all()) and bool((table == -1).all()) and bool((blocks == -1).all())
-    phi, field, *_ = ns.pressure(faces, table, blocks, count, grid.target_density, s["dt"], h, r, *_solve_args(grid),
+    phi, field, *_ = ns.pressure(faces, table, blocks, count, grid.target_density, s["dt"], h, r, *solve_args(grid),
                                  grid.active_capacity)
     x1, v1 = ns.g2p(xf, s["vf"], field, table, s["frame"], grid.origin, s["free"], s["dt"], h, r, 0.05)
     assert torch.equal(x1, xf) and torch.equal(v1, s["vf"])
@@ -449,7 +397,7 @@ def test_empty_grid(grid_ops, device):
         assert torch.equal(x2, xf.reshape(s["x"].shape)) and torch.equal(v2, s["v"])
 
 
-def test_native_results_do_not_depend_on_the_thread_count(grid_ops):
+def test_native_results_do_not_depend_on_the_thread_count(cpu_ops):
     s = squeeze_scene(torch.float32, "cpu", strands=400, resolution=32, scenes=1)
     grid = s["grid"]
     args = (s["xf"], s["vf"], s["m"], s["frame"], grid.origin, grid.cell_size, grid.resolution, grid.capacity)
@@ -458,10 +406,10 @@ def test_native_results_do_not_depend_on_the_thread_count(grid_ops):
         outs = []
         for threads in (1, 2, 1):
             torch.set_num_threads(threads)
-            faces, table, blocks, count = grid_ops.p2g(*args)
+            faces, table, blocks, count = cpu_ops.p2g(*args)
             used = int(count[0])
-            phi, field, _ = grid_ops.pressure(faces, table, blocks, count, grid.target_density, s["dt"], grid.cell_size,
-                                            grid.resolution, *_solve_args(grid), grid.active_capacity)
+            phi, field, _ = cpu_ops.pressure(faces, table, blocks, count, grid.target_density, s["dt"], grid.cell_size,
+                                            grid.resolution, *solve_args(grid), grid.active_capacity)
             outs.append((faces[:, :used], table, phi[:, :used], field[:, :used]))
     finally:
         torch.set_num_threads(before)
@@ -472,7 +420,7 @@ def test_native_results_do_not_depend_on_the_thread_count(grid_ops):
 
 # -- registration ----------------------------------------------------------------------------
 @pytest.mark.parametrize("device", DEVICES)
-def test_opcheck(grid_ops, device):
+def test_opcheck(cpu_ops, device):
     """The three ops against their fakes and schemas. The capacity is the blocks the scene uses
     (slots beyond them are unspecified: the kernels leave them unwritten)."""
     _namespace(device)
@@ -501,17 +449,17 @@ class _Record(TorchDispatchMode):
         return func(*args, **(kwargs or {}))
 
 
-def test_backend_selection(grid_ops):
+def test_backend_selection(cpu_ops):
     s = squeeze_scene(torch.float64, "cpu", strands=20, resolution=8)
     call = lambda x, v, backend, grid=s["grid"]: hair_hair_stage(grid, x, v, s["mass"], s["pose"], DT,  # noqa: E731
                                                                  s["free"], backend=backend)
-    ours = lambda rec: [o for o in rec.ops if "hair_hair" in o or "grid_cpu" in o]  # noqa: E731
+    ours = lambda rec: [o for o in rec.ops if "hair_hair" in o or "ams_torch_cpu" in o]  # noqa: E731
     with _Record() as rec:
         call(s["x"], s["v"], "auto")
     # eager: the native kernels directly (the registered ops wrap them for torch.compile)
-    assert [o for o in rec.ops if "grid_cpu" in o] == ["ams_torch_grid_cpu.p2g.default",
-                                                       "ams_torch_grid_cpu.pressure.default",
-                                                       "ams_torch_grid_cpu.g2p.default"]
+    assert [o for o in rec.ops if "ams_torch_cpu" in o] == ["ams_torch_cpu.p2g.default",
+                                                       "ams_torch_cpu.pressure.default",
+                                                       "ams_torch_cpu.g2p.default"]
     v = s["v"].clone().requires_grad_(True)
     for backend in ("auto", "torch"):
         with _Record() as rec:
@@ -537,7 +485,7 @@ _FALLBACK_SCRIPT = textwrap.dedent(
     import json, sys, warnings
     sys.path.insert(0, {tests!r})
     import torch
-    from test_native_grid import squeeze_scene
+    from native_cases import squeeze_scene
     from ams_torch.stages.hair_hair import hair_hair_stage
     s = squeeze_scene(torch.float32, "cpu", strands=30, resolution=8)
     run = lambda b: hair_hair_stage(s["grid"], s["x"], s["v"], s["mass"], s["pose"], 1 / 60, s["free"], backend=b)
@@ -567,7 +515,7 @@ def test_disabled_native_falls_back_to_torch(tmp_path):
 
 
 @pytest.mark.slow
-def test_issue_case_at_128_equals_the_dense_definition(grid_ops):
+def test_issue_case_at_128_equals_the_dense_definition(cpu_ops):
     """The issue's 160 × 12 groom at R = 128 (float64, squeezed, moving head): the sparse torch
     path and the native kernels give the dense definition's velocities."""
     s = squeeze_scene(torch.float64, "cpu", strands=160, particles=12, resolution=128, scenes=1, outside=False)

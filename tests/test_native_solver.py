@@ -20,6 +20,7 @@ import pytest
 import torch
 
 from conftest import DEVICES
+from native_cases import H, strand_system
 
 from ams_torch.native import build as _native
 from ams_torch.solver import op as ops
@@ -28,52 +29,11 @@ from ams_torch.solver.reference import banded_matvec, banded_to_dense, solve_ban
 REPO = Path(__file__).resolve().parents[1]
 CSRC = REPO / "ams_torch" / "native" / "csrc" / "banded"
 CSRC_ROOT = CSRC.parent
-H = 1.0 / 60.0  # time step of the assembled systems, s
 
 
 # ---------------------------------------------------------------------------------------
-# input factories (also used by scripts/bench_solver.py)
+# input factories (strand_system, shared: tests/native_cases.py)
 # ---------------------------------------------------------------------------------------
-
-def strand_system(strands: int, n: int, *, mass: float = 1.0, stiffness=(1e3, 3e2, 1e2), dt: float = H,
-                  dtype=torch.float64, device="cpu", seed: int = 0, junk: bool = False):
-    """Implicit-step matrices of random strands, assembled as the simulator does (SPEC §4).
-
-    Particles follow a random walk (1 cm segments). Springs join i and i−k (k = 1, 2, 3) with
-    stiffness ``stiffness[k-1]`` (N/m, ±50 % per spring) along their chord d: D = d dᵀ. Then
-        A[i, i]   = m I + dt² Σ_springs∋i κ D,      A[i, i−k] = −dt² κ D_{i,i−k},
-    symmetric positive definite (m > 0). With κ = 1e8 and m = 1e-6 its condition number is
-    near 1e11.
-
-    Returns blocks: (strands, n, 4, 3, 3) and rhs: (strands, n, 3) (kg·m/s scale ~ m).
-    ``junk=True`` fills the entries the solver must never read (strict upper triangle of the
-    diagonal blocks, blocks[i, k] for k > i) with NaN.
-    """
-    g = torch.Generator().manual_seed(seed)
-    f64 = torch.float64
-    steps = torch.randn(strands, n, 3, generator=g, dtype=f64)
-    steps = 0.01 * steps / steps.norm(dim=-1, keepdim=True)
-    pos = steps.cumsum(dim=1)
-    blocks = torch.zeros(strands, n, 4, 3, 3, dtype=f64)
-    blocks[:, :, 0] = mass * torch.eye(3, dtype=f64)
-    for k in range(1, 4):
-        if k >= n:
-            break
-        d = pos[:, k:] - pos[:, :-k]
-        d = d / d.norm(dim=-1, keepdim=True)
-        kappa = stiffness[k - 1] * (0.5 + torch.rand(strands, n - k, 1, 1, generator=g, dtype=f64))
-        c = dt * dt * kappa * d.unsqueeze(-1) * d.unsqueeze(-2)
-        blocks[:, k:, k] = -c
-        blocks[:, k:, 0] += c
-        blocks[:, :-k, 0] += c
-    rhs = mass * torch.randn(strands, n, 3, generator=g, dtype=f64)
-    if junk:
-        blocks = blocks.clone()
-        iu = torch.triu_indices(3, 3, 1)
-        blocks[:, :, 0, iu[0], iu[1]] = float("nan")
-        for k in range(1, 4):
-            blocks[:, : min(k, n), k] = float("nan")
-    return blocks.to(device=device, dtype=dtype), rhs.to(device=device, dtype=dtype)
 
 
 def stiff_system(strands, n, dtype=torch.float64, device="cpu", seed=0):
@@ -271,7 +231,7 @@ _FALLBACK_SCRIPT = textwrap.dedent(
     import json, os, sys, warnings
     sys.path.insert(0, {tests!r})
     import torch
-    from test_native_solver import strand_system
+    from native_cases import strand_system
     from ams_torch.native import build as _native
     from ams_torch.solver import op as ops
     from ams_torch.solver.reference import solve_banded_plain

@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 
 from ams_torch.apps.cli import main
 
-from test_parsing_property import _mutate, sampler, toml_value
+from toml_strategies import mutate, sampler, toml_value
 from conftest import run_cli
 
 SLOW = os.environ.get("HYPOTHESIS_PROFILE") == "slow"
@@ -160,7 +160,7 @@ def test_the_toml_writer_round_trips():
 @settings(**PROFILE)
 @given(st.data())
 def test_simulate_exits_0_or_2_with_one_error_line(data):
-    scene = _mutate(data, SCENE, VALUES)
+    scene = mutate(data, SCENE, VALUES)
     with tempfile.TemporaryDirectory() as tmp:
         path = _write(scene, tmp, "scene.toml")
         _run(["simulate", path, "--out", os.path.join(tmp, "out"), "--frames", "2", "--no-video", "--quiet",
@@ -170,7 +170,7 @@ def test_simulate_exits_0_or_2_with_one_error_line(data):
 @settings(**PROFILE)
 @given(st.data())
 def test_generate_exits_0_or_2_with_one_error_line_and_validates(data):
-    recipe = _mutate(data, RECIPE, st.one_of(VALUES, sampler))
+    recipe = mutate(data, RECIPE, st.one_of(VALUES, sampler))
     if isinstance(recipe.get("frames"), int) and not isinstance(recipe["frames"], bool) and recipe["frames"] > 4:
         recipe["frames"] = 4  # a long dataset is a valid request, not a fault: keep the run short
     with tempfile.TemporaryDirectory() as tmp:

@@ -26,7 +26,7 @@ def test_validate_cuda_dry_run(tmp_path):
     for name in want[:-1]:
         assert steps[name]["status"] in ("pass", "skip"), (name, steps[name])
     assert steps["sanitizer"]["status"] == "skip"
-    assert steps["build"]["backends"]["frame_cuda_emu"]["built"]  # the emulated CUDA backends stand in
+    assert steps["build"]["backends"]["cuda_emu"]["built"]  # the emulated CUDA backends stand in
     assert steps["graph"]["results"]["20"]["captures"] == 1
     assert (out / "benchmarks" / "cuda_dry.md").exists() and (out / "benchmarks" / "cuda_dry.json").exists()
     md = (out / "summary.md").read_text()

@@ -9,9 +9,13 @@ be had (native code disabled, no C++ compiler, no ninja, no CUDA toolkit, a comp
 failed smoke test) the caller gets ``None`` and falls back to the torch definition, and one
 :class:`NativeBuildWarning` is issued per backend kind and process, naming the kind and why.
 
-Backends (``_BACKENDS``): one per op group and device (``cpu``/``cuda``: the banded solve;
-``frame_*``, ``collide_*``, ``grid_*``), so that a group that fails to build leaves the others;
-and for every CUDA backend ``<kind>_emu``, its sources built as host code (:mod:`ams_torch.native.emulation`).
+Backends (``_BACKENDS``): one library per device, ``cpu`` (every op group's CPU kernels:
+the banded solve, ``frame``, ``frame_adjoint``, ``collide``, ``grid``; :data:`GROUPS`) and ``cuda``
+(their CUDA kernels), each registering its functions under one ``torch.ops`` namespace
+(``ams_torch_cpu``, ``ams_torch_cuda``); ``cuda_emu``, the CUDA library's sources built as host
+code (:mod:`ams_torch.native.emulation`); and the emulator's test-only self-test library
+(``selftest_cuda``, ``selftest_cuda_emu``). Every C++ source is compiled with the same flags, one
+floating-point contraction setting (``-ffp-contract=off``) included.
 
 Environment:
     AMS_TORCH_NATIVE=0           use the torch definitions only (never build).
@@ -80,33 +84,36 @@ CSRC = CSRC_ROOT / "banded"
 ENV_ENABLE = "AMS_TORCH_NATIVE"
 ENV_CACHE = "AMS_TORCH_CACHE"
 
+#: op group -> (its CPU sources, its CUDA sources: the .cu files and their torch binding), relative
+#: to csrc/. Groups are the folders of csrc/ and a Python-side notion only (which functions exist;
+#: :mod:`ams_torch.native.dispatch`): every group's CPU sources go into the one CPU library, its
+#: CUDA sources into the one CUDA library.
+GROUPS = {
+    "banded": (("banded/banded_cpu.cpp",), ("banded/banded_cuda_binding.cpp", "banded/banded_cuda.cu")),
+    "frame": (("frame/frame_cpu.cpp",), ("frame/frame_cuda_binding.cpp", "frame/frame_cuda.cu")),
+    "frame_adjoint": (("frame/frame_adjoint_cpu.cpp",),
+                      ("frame/frame_adjoint_cuda_binding.cpp", "frame/frame_adjoint_cuda.cu")),
+    "collide": (("collide/collide_cpu.cpp",), ("collide/collide_cuda_binding.cpp", "collide/collide_cuda.cu")),
+    "grid": (("grid/grid_cpu.cpp",), ("grid/grid_cuda_binding.cpp", "grid/grid_cuda.cu")),
+}
+
 # backend -> (extension name, sources compiled, headers they read (relative to csrc/; left empty here),
 #             torch.ops namespace, device type). csrc/ is the include path: includes are path-qualified
 #             ("common/launch_cuda.cuh"); the headers are completed with the include closure below.
-# One backend per op group and device, so that a group that fails to build leaves the others.
+# One library per device: every source registers its functions under the library's namespace
+# (TORCH_LIBRARY_FRAGMENT(ams_torch_cpu, m) / TORCH_LIBRARY_IMPL(ams_torch_cpu, CPU, m); the same
+# with ams_torch_cuda), and every source of a library is compiled with the same flags (one
+# floating-point contraction setting: inline and template functions of shared headers, of which
+# the linker keeps one copy per library, are then the same code in every source).
 _BACKENDS = {
-    "cpu": ("ams_torch_banded_cpu", ("banded/banded_cpu.cpp",), (), "ams_torch_cpu", "cpu"),
-    "cuda": ("ams_torch_banded_cuda", ("banded/banded_cuda_binding.cpp", "banded/banded_cuda.cu"), (),
-             "ams_torch_cuda", "cuda"),
-    "grid_cpu": ("ams_torch_grid_cpu", ("grid/grid_cpu.cpp",), (), "ams_torch_grid_cpu", "cpu"),
-    "grid_cuda": ("ams_torch_grid_cuda", ("grid/grid_cuda_binding.cpp", "grid/grid_cuda.cu"), (),
-                  "ams_torch_grid_cuda", "cuda"),
-    "frame_cpu": ("ams_torch_frame_cpu", ("frame/frame_cpu.cpp",), (), "ams_torch_frame_cpu", "cpu"),
-    "frame_cuda": ("ams_torch_frame_cuda", ("frame/frame_cuda_binding.cpp", "frame/frame_cuda.cu"), (),
-                   "ams_torch_frame_cuda", "cuda"),
-    "frame_adjoint_cpu": ("ams_torch_frame_adjoint_cpu", ("frame/frame_adjoint_cpu.cpp",), (),
-                          "ams_torch_frame_adjoint_cpu", "cpu"),
-    "frame_adjoint_cuda": ("ams_torch_frame_adjoint_cuda",
-                           ("frame/frame_adjoint_cuda_binding.cpp", "frame/frame_adjoint_cuda.cu"), (),
-                           "ams_torch_frame_adjoint_cuda", "cuda"),
-    "collide_cpu": ("ams_torch_collide_cpu", ("collide/collide_cpu.cpp",), (), "ams_torch_collide_cpu", "cpu"),
-    "collide_cuda": ("ams_torch_collide_cuda", ("collide/collide_cuda_binding.cpp", "collide/collide_cuda.cu"), (),
-                     "ams_torch_collide_cuda", "cuda"),
+    "cpu": ("ams_torch_cpu", tuple(s for cpu, _ in GROUPS.values() for s in cpu), (), "ams_torch_cpu", "cpu"),
+    "cuda": ("ams_torch_cuda", tuple(s for _, cuda in GROUPS.values() for s in cuda), (), "ams_torch_cuda", "cuda"),
 }
 
 
-# The emulator's self-test kernels (csrc/emulation/selftest_cuda.*): built on request only, for the
-# emulation (tests) and on a GPU (scripts/validate_cuda.py: the emulator's answers against the device's).
+# The emulator's self-test kernels (csrc/emulation/selftest_cuda.*), a separate test-only library:
+# built on request only, for the emulation (tests) and on a GPU (scripts/validate_cuda.py: the
+# emulator's answers against the device's); no op of ams_torch calls it.
 _SELFTEST = {
     "selftest_cuda": ("ams_torch_selftest_cuda", ("emulation/selftest_cuda_binding.cpp", "emulation/selftest_cuda.cu"),
                       (), "ams_torch_selftest_cuda", "cuda"),
@@ -148,9 +155,10 @@ _ALL = {**_BACKENDS, **_SELFTEST, **emulation.emulated_specs({**_BACKENDS, **_SE
 #: How each stage of a frame whose inputs require grad runs on a native simulator (forward and
 #: adjoint): reported by native_status()["gradients"].
 GRADIENT_STAGES = {
-    "dynamics": "native forward and adjoint (frame_adjoint_cpu / frame_adjoint_cuda) when the contact runs once per "
-                "frame or there are no colliders; with Params(contact='substep') and colliders, the one-particle "
-                "angular form (angular_reaction=False) or a callable external force: the torch definition",
+    "dynamics": "native forward and adjoint (frame_posed / frame_adjoint of the cpu / cuda library) when the "
+                "contact runs once per frame or there are no colliders; with Params(contact='substep') and "
+                "colliders, the one-particle angular form (angular_reaction=False) or a callable external force: "
+                "the torch definition",
     "hair_hair": "torch definition",
     "collisions": "torch definition",
     "finish": "torch definition",
@@ -173,6 +181,7 @@ def _fresh_state() -> dict:
 
 _state = {kind: _fresh_state() for kind in _ALL}
 _ops: dict = {}
+_loading: set = set()  # kinds being built, loaded and smoke-tested now (by this process)
 
 
 def _st(kind: str) -> dict:
@@ -257,8 +266,8 @@ def native_status(build: bool = False) -> dict:
             st["device"] = _ALL[kind][4]
             out[kind] = st
         grad = dict(GRADIENT_STAGES)
-        if not any(_st(k)["built"] for k in ("frame_adjoint_cpu", "frame_adjoint_cuda")):
-            adjoint = out["frame_adjoint_cpu"]["reason"]
+        if not any(_st(k)["built"] for k in ("cpu", "cuda")):
+            adjoint = out["cpu"]["reason"]
             grad["dynamics"] = grad["dynamics"] if adjoint.startswith("not built yet") else \
                 f"torch definition (the adjoint kernels did not build: {adjoint})"
         out["gradients"] = grad
@@ -275,8 +284,14 @@ def _get(kind: str) -> Optional[Callable]:
         return op
     with _lock:
         st = _st(kind)
+        if kind in _loading:
+            # asked again from inside its own smoke test: the probes' reference is the torch
+            # definition, which must not call the library being tested (one library holds the
+            # banded solve that the definition of the frame calls)
+            return None
         if not st["attempted"]:
             t0 = time.perf_counter()
+            _loading.add(kind)
             try:
                 _ops[kind] = _build_and_load(kind, st)
                 st["built"] = True
@@ -284,6 +299,8 @@ def _get(kind: str) -> Optional[Callable]:
                 st["reason"] = str(e)
             except Exception as e:  # a compile or load error: report it, never crash the solve
                 st["reason"] = f"build failed: {type(e).__name__}: {_tail(str(e))}"
+            finally:
+                _loading.discard(kind)
             # (an interrupt, e.g. Ctrl-C during the build, leaves the backend untried: the next
             # call builds again)
             st["attempted"] = True
@@ -413,7 +430,10 @@ def _smoke_test(kind: str, ns, device: str, st: dict) -> None:
 
 def _build_config(device: str):
     """(C++ flags, nvcc flags, linker flags, cache-key facts) for a backend of ``device``."""
-    cflags = ["-O3", "-fno-math-errno", "-Wno-psabi"]
+    # -ffp-contract=off for every C++ source (GCC's default for C++ is "fast": a*b + c fused into
+    # one FMA where the compiler likes): the kernels round like the torch definition, and the
+    # sources of one library share header functions that must be the same code in all of them.
+    cflags = ["-O3", "-fno-math-errno", "-ffp-contract=off", "-Wno-psabi"]
     ldflags: list = []
     capability = torch.backends.cpu.get_cpu_capability()
     if device == emulation.DEVICE:

@@ -5,12 +5,14 @@ before it calls its native kernel (and otherwise its torch definition):
   :data:`NATIVE_DEVICES`);
 * a tensor that keeps a gradient goes to the torch definition (the gradient is exact on the
   definition), except for the ops with their own adjoint (``frame_adjoint``);
-* the op group's library must be built (built lazily on the first question, one
+* the device's native library must be built (built lazily on the first question, one
   :class:`~ams_torch.native.build.NativeBuildWarning` when it cannot be).
 
 Op groups (``group``) are the folders of ``csrc/``: ``banded`` (the solve), ``frame``,
-``frame_adjoint``, ``collide``, ``grid``; :func:`native_kind` names the build backend of a group on
-a device. The Python checks (:func:`native_inputs`) are traceable: no build, no host sync.
+``frame_adjoint``, ``collide``, ``grid`` (``build.GROUPS``): which functions exist, not separate
+libraries. Every group's kernels are in the one library of their device (build backends ``cpu``
+and ``cuda``); :func:`native_kind` names it. The Python checks (:func:`native_inputs`) are
+traceable: no build, no host sync.
 """
 from __future__ import annotations
 
@@ -27,18 +29,17 @@ __all__ = ["NATIVE_DTYPES", "NATIVE_DEVICES", "GROUPS", "native_kind", "keeps_gr
 NATIVE_DTYPES = (torch.float32, torch.float64)
 #: the device types of the native kernels
 NATIVE_DEVICES = ("cpu", "cuda")
-#: op group -> the build backends' prefix (``<prefix><device>``)
-GROUPS = {"banded": "", "frame": "frame_", "frame_adjoint": "frame_adjoint_", "collide": "collide_",
-          "grid": "grid_"}
+#: the op groups (``build.GROUPS``: their sources)
+GROUPS = tuple(_build.GROUPS)
 
 
 def native_kind(group: str, device) -> Optional[str]:
-    """The build backend of op ``group`` on ``device`` ("frame", cuda -> "frame_cuda"), or None
-    for a device without native kernels."""
+    """The build backend holding op ``group``'s kernels on ``device`` (the device's one library:
+    "frame", cuda -> "cuda"), or None for a device without native kernels."""
     if group not in GROUPS:
         raise ValueError(f"unknown native op group {group!r}; one of {sorted(GROUPS)}")
     dev = torch.device(device).type
-    return GROUPS[group] + dev if dev in NATIVE_DEVICES else None
+    return dev if dev in NATIVE_DEVICES else None
 
 
 def keeps_gradient(tensors: Iterable[Optional[torch.Tensor]], grad_mode: bool = True) -> bool:

@@ -1,16 +1,17 @@
-"""The CUDA emulation: every CUDA backend of :mod:`ams_torch.native.build` (its ``.cu`` files and
-its torch binding) compiled as host C++ against the CPU torch, so the CUDA kernels run in the
-tests on a machine without a GPU.
+"""The CUDA emulation: every CUDA backend of :mod:`ams_torch.native.build` (the CUDA library: every
+``.cu`` file and torch binding; and the emulator's self-test) compiled as host C++ against the CPU
+torch, so the CUDA kernels run in the tests on a machine without a GPU.
 
 For each CUDA backend ``<kind>`` of the build table there is an emulated backend
-``<kind>_emu`` with the same sources and headers (a kernel or header added to the table is
+``<kind>_emu`` (``cuda_emu``: one emulated library with every CUDA kernel, namespace
+``ams_torch_cuda_emu``) with the same sources and headers (a kernel or header added to the table is
 emulated with no change here), built like the others (lazily, cached, ``native_ops``):
 
 * the sources and headers are copied into the build directory with two rewrites: the launch
   syntax ``k<<<grid, block, shmem, stream>>>(args)`` becomes
   ``k | ::ams_emu::LaunchConfig("file:line k", grid, block, shmem, stream)(args)`` (a call of
   the emulator, ``csrc/emulation/cuda_emulation.h``), and in the bindings the op library
-  ``TORCH_LIBRARY(ns, …)`` becomes ``ns_emu`` with its ``CUDA`` kernels registered for ``CPU``
+  ``TORCH_LIBRARY(ns, …)`` (or ``TORCH_LIBRARY_FRAGMENT``) becomes ``ns_emu`` with its ``CUDA`` kernels registered for ``CPU``
   (``.is_cuda()`` checks read ``.is_cpu()``);
 * ``.cu`` files are compiled by the C++ compiler with ``__CUDACC__`` and ``__CUDA_ARCH__``
   defined and the emulator included first; the bindings find stand-ins for the toolkit's and
@@ -18,7 +19,7 @@ emulated with no change here), built like the others (lazily, cached, ``native_o
 * a local header that a copied file includes but the build table does not list is an error
   (the table is also the real build's cache key: an unlisted header would leave a stale cache).
 
-The emulated ops take CPU tensors: ``build.native_ops("frame_cuda_emu").frame(...)`` runs the CUDA
+The emulated ops take CPU tensors: ``build.native_ops("cuda_emu").frame(...)`` runs the CUDA
 kernels of ``frame_cuda.cu`` through the binding of ``frame_cuda_binding.cpp``. What the
 emulation can and cannot show is in the header comment of ``cuda_emulation.h`` and in
 ``docs/cuda.md``.

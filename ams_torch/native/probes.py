@@ -1,13 +1,14 @@
-"""Smoke tests of a freshly loaded native backend: one tiny call of each op group, compared with the
-torch definition (float64, a few values). :mod:`ams_torch.native.build` runs the probe of a backend
-right after loading it and marks the backend unavailable, with the error, when it fails: a library
+"""Smoke tests of a freshly loaded native library: one tiny call of each op group, compared with the
+torch definition (float64, a few values). :mod:`ams_torch.native.build` runs the probes of a library
+(every registered group's: the CPU, CUDA and emulated CUDA libraries hold every group) right after
+loading it and marks the backend unavailable, with the error, when it fails: a library
 built for the wrong GPU architecture, a broken toolkit or driver, or a kernel that crashes, is then
 reported at build time (and the torch path is used) instead of failing, or returning garbage,
 inside the first step.
 
 The banded solve's probe is here; the op groups of the upper layers register theirs
-(:func:`register`: ``frame``, ``collide`` and ``grid`` in :mod:`ams_torch.sim.backends`). A group
-without a probe (e.g. the emulator's self-test) is only loaded.
+(:func:`register`: ``frame``, ``collide`` and ``grid`` in :mod:`ams_torch.sim.backends`, imported
+with ``ams_torch``). A library without probes (the emulator's self-test) is only loaded.
 """
 from __future__ import annotations
 
@@ -24,7 +25,7 @@ PROBES: Dict[str, Callable] = {}
 
 
 def register(group: str, fn: Callable) -> None:
-    """Make ``fn(ns, device)`` the probe of op group ``group`` (the kind without ``_cpu``/``_cuda``/``_emu``)."""
+    """Make ``fn(ns, device)`` the probe of op group ``group`` (a key of ``build.GROUPS``)."""
     PROBES[group] = fn
 
 
@@ -37,21 +38,25 @@ def close(got: torch.Tensor, want: torch.Tensor, what: str) -> None:
         raise AssertionError(f"{what}: relative difference {err / scale:.3g} from the torch definition")
 
 
-def group(kind: str) -> str:
-    """``frame_cuda_emu`` -> ``frame``; ``cpu``/``cuda`` -> ``banded``."""
+#: the build backends holding every op group (the emulated CUDA library as ``cuda_emu``)
+LIBRARIES = ("cpu", "cuda")
+
+
+def groups(kind: str) -> list:
+    """The op groups whose probes backend ``kind`` runs: every registered one for the CPU and CUDA
+    libraries and the emulated CUDA library (``cuda_emu``), none for another (the self-test)."""
     base = kind[:-4] if kind.endswith("_emu") else kind
-    return "banded" if base in ("cpu", "cuda") else base.rsplit("_", 1)[0]
+    return list(PROBES) if base in LIBRARIES else []
 
 
 def probe(kind: str, ns, device: str) -> None:
-    """Run the probe of backend ``kind`` (a key of the build table) on ``ns`` (its ``torch.ops``
+    """Run the probes of backend ``kind`` (a key of the build table) on ``ns`` (its ``torch.ops``
     namespace) with ``device`` tensors ("cpu" for the CPU and emulated backends, "cuda")."""
-    fn = PROBES.get(group(kind))
-    if fn is not None:
+    for name in groups(kind):
         with torch.no_grad():
-            fn(ns, torch.device(device))
-        if torch.device(device).type == "cuda":
-            torch.cuda.synchronize(device)
+            PROBES[name](ns, torch.device(device))
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
 
 
 def _banded(ns, device) -> None:

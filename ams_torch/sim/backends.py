@@ -33,12 +33,14 @@ F64 = torch.float64
 def needed_backends(device, hair_hair: bool = False, colliders: bool = False) -> Tuple[List[str], List[str]]:
     """The native backends a simulator on ``device`` uses: (required by ``backend="native"``, used
     when there: the banded solve of the torch path, which frames that keep a gradient take).
-    Kinds of :mod:`ams_torch.native.build`: ``frame_<dev>``, ``collide_<dev>`` with colliders,
-    ``grid_<dev>`` with hair–hair interaction; ``cpu``/``cuda`` (the banded solve)."""
+    Kinds of :mod:`ams_torch.native.build`: the device's one library (``cpu`` or ``cuda``) holds
+    every op group (frame, collisions, grid, banded solve), so it is the one kind either way:
+    ``(["cpu"], ["cpu"])`` on the CPU whatever the stages, ``([], [])`` on a device without kernels."""
     if native_kind("frame", device) is None:
         return [], []
     groups = ["frame"] + (["collide"] if colliders else []) + (["grid"] if hair_hair else [])
-    return [native_kind(g, device) for g in groups], [native_kind("banded", device)]
+    required = list(dict.fromkeys(native_kind(g, device) for g in groups))
+    return required, [native_kind("banded", device)]
 
 
 def resolve_backend(backend: str, device, dtype, hair_hair: bool = False, colliders: bool = False) -> str:
@@ -61,7 +63,7 @@ def resolve_backend(backend: str, device, dtype, hair_hair: bool = False, collid
             raise ValueError(f"backend='native' but there are no native kernels for {dev}/{dtype}: they take "
                              f"float32 or float64 tensors on CPU or CUDA")
         return "torch"
-    missing = _native.ensure(required + optional)
+    missing = _native.ensure(dict.fromkeys(required + optional))
     lacking = {k: why for k, why in missing.items() if k in required}
     if backend == "native" and lacking:
         detail = "; ".join(f"{k}: {why}" for k, why in lacking.items())

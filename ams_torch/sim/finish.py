@@ -3,7 +3,7 @@ particle's speed relative to the head is measured for the divergence flag.
 
 :func:`pin_and_speed` is the definition (torch). :func:`native_finish` runs it as one registered
 op, ``torch.ops.ams_torch.finish``, whose CPU and CUDA kernels (``csrc/frame/finish.h``, in the
-frame backends ``frame_cpu`` / ``frame_cuda`` of :mod:`ams_torch.native.build`) do the same
+libraries ``cpu`` / ``cuda`` of :mod:`ams_torch.native.build`) do the same
 arithmetic in one pass over the particles: the torch definition is five whole-array passes
 (cross product, sum, select, difference, norm) that cost as much as the fused frame kernel
 itself at 10k × 32 on a CPU. Anything the kernels cannot take (a gradient to keep, another

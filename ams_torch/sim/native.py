@@ -9,8 +9,8 @@ every scene, in one call of the registered op ``torch.ops.ams_torch.frame_dynami
 * default implementation (any device): the torch definition, ``frame_dynamics`` itself, called
   through a light adapter that rebuilds the model, coefficients, config and poses from the op's
   tensors and numbers;
-* CPU and CUDA: the native kernels of ``ams_torch/native/csrc/frame`` (backends ``frame_cpu`` and
-  ``frame_cuda`` of :mod:`ams_torch.native.build`), built lazily on first use, float32 and
+* CPU and CUDA: the native kernels of ``ams_torch/native/csrc/frame`` (in the libraries ``cpu`` and
+  ``cuda`` of :mod:`ams_torch.native.build`), built lazily on first use, float32 and
   float64; otherwise (not built, ``AMS_TORCH_NATIVE=0``, another dtype, an input requiring grad)
   the torch definition, with one :class:`~ams_torch.native.build.NativeBuildWarning` per process
   when a build fails;

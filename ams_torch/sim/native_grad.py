@@ -5,7 +5,7 @@ A frame whose inputs require grad runs its strand dynamics through the registere
 the fused native frame with its M + 1 substep head poses given as a tensor (computed here in torch
 by :func:`~ams_torch.sim.dynamics.substep_poses`, so their gradients reach the frame's head poses
 and velocities), and ``register_autograd`` makes its backward the native adjoint kernel
-(``csrc/frame/frame_adjoint.h``; backends ``frame_adjoint_cpu`` / ``frame_adjoint_cuda`` of
+(``csrc/frame/frame_adjoint.h``; libraries ``cpu`` / ``cuda`` of
 :mod:`ams_torch.native.build`). The adjoint recomputes the frame (nothing is stored between the
 passes) and differentiates it with respect to x, v, ghost_rest, the external force, the per-element
 coefficients (mass, drag, edge / bend / torsion stiffness, integrity, angular: the gradients of the

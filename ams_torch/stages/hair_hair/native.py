@@ -5,8 +5,8 @@ block-sparse grid of :mod:`.sparse` (a pool of K blocks of 4³ cells per scene; 
 
 * default implementation (any device): the torch definition (``sparse.py``: the dense grid of
   ``transfer.py`` and ``pressure.py`` on the occupied blocks);
-* CPU and CUDA: the native kernels of ``ams_torch/native/csrc/grid`` (backends ``grid_cpu`` and
-  ``grid_cuda`` of :mod:`ams_torch.native.build`), built lazily on first use, for float32 and
+* CPU and CUDA: the native kernels of ``ams_torch/native/csrc/grid`` (in the libraries ``cpu`` and
+  ``cuda`` of :mod:`ams_torch.native.build`), built lazily on first use, for float32 and
   float64; otherwise (not built, ``AMS_TORCH_NATIVE=0``, another dtype) the torch definition,
   unless ``require_native`` asks for an error instead;
 * ``register_fake``: shapes for ``torch.compile`` / meta tensors. No autograd formula: the

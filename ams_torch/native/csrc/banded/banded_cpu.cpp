@@ -90,7 +90,7 @@ at::Tensor solve_banded_cpu(const at::Tensor& blocks, const at::Tensor& rhs) {
 } // namespace banded
 } // namespace ams_torch
 
-TORCH_LIBRARY(ams_torch_cpu, m) {
+TORCH_LIBRARY_FRAGMENT(ams_torch_cpu, m) {
   m.def("solve_banded(Tensor blocks, Tensor rhs) -> Tensor");
 }
 

@@ -51,7 +51,7 @@ at::Tensor solve_banded_cuda_op(const at::Tensor& blocks, const at::Tensor& rhs)
 } // namespace banded
 } // namespace ams_torch
 
-TORCH_LIBRARY(ams_torch_cuda, m) {
+TORCH_LIBRARY_FRAGMENT(ams_torch_cuda, m) {
   m.def("solve_banded(Tensor blocks, Tensor rhs) -> Tensor");
 }
 

@@ -1,4 +1,4 @@
-// CPU kernel of the fused collision stage: op `ams_torch_collide_cpu::collide` (schema and shapes
+// CPU kernel of the fused collision stage: op `ams_torch_cpu::collide` (schema and shapes
 // in collide_binding.h; arithmetic in collide.h, shared with CUDA).
 //
 // Tasks of (scene, group of W strands) run by at::parallel_for, W the SIMD width of
@@ -7,10 +7,10 @@
 // stage on W-lane vectors (the mesh grid is read lane by lane), and copies x, v out. The colliders'
 // per-scene values (pose, offsets, geometry) are prepared once per call.
 //
-// This translation unit is compiled without floating-point contraction (no fused multiply-add):
-// contact is decided by the sign of σ, and particles pushed out sit at σ ≈ 0, so σ and the
-// normals are computed with the torch definition's own roundings (grid_sample's trilinear sum
-// included) rather than one ulp away.
+// Like every source of the CPU library, this one is compiled without floating-point contraction
+// (-ffp-contract=off, ams_torch/native/build.py: no fused multiply-add): contact is decided by the
+// sign of σ, and particles pushed out sit at σ ≈ 0, so σ and the normals are computed with the
+// torch definition's own roundings (grid_sample's trilinear sum included) rather than one ulp away.
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
@@ -22,12 +22,6 @@
 #include <tuple>
 #include <vector>
 
-#if defined(__GNUC__) && !defined(__clang__)
-#pragma GCC optimize("fp-contract=off")
-#elif defined(__clang__)
-#pragma clang fp contract(off)
-#endif
-
 #include "banded/banded_simd.h"
 #include "collide/collide.h"
 #include "collide/collide_binding.h"
@@ -38,7 +32,7 @@ namespace ams_torch {
 namespace collide {
 namespace {
 
-constexpr const char* kOp = "ams_torch_collide_cpu::collide";
+constexpr const char* kOp = "ams_torch_cpu::collide";
 
 template <class T>
 void run_collide(const CollideArgs<T>& args, const CollideSettings& cfg, T* xo, T* vo) {
@@ -107,10 +101,10 @@ std::tuple<at::Tensor, at::Tensor> collide_cpu(const at::Tensor& x, const at::Te
 } // namespace collide
 } // namespace ams_torch
 
-TORCH_LIBRARY(ams_torch_collide_cpu, m) {
+TORCH_LIBRARY_FRAGMENT(ams_torch_cpu, m) {
   m.def(ams_torch::collide::kCollideSchema);
 }
 
-TORCH_LIBRARY_IMPL(ams_torch_collide_cpu, CPU, m) {
+TORCH_LIBRARY_IMPL(ams_torch_cpu, CPU, m) {
   m.impl("collide", &ams_torch::collide::collide_cpu);
 }

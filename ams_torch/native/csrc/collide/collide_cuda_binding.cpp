@@ -1,4 +1,4 @@
-// Torch binding of the CUDA fused collision stage: op `ams_torch_collide_cuda::collide` (schema
+// Torch binding of the CUDA fused collision stage: op `ams_torch_cuda::collide` (schema
 // and shapes in collide_binding.h). Built only against a CUDA torch; the kernels are in
 // collide_cuda.cu (nvcc, no torch headers). Runs on the current CUDA stream of the inputs'
 // device, workspace from torch's caching allocator, no host synchronisation.
@@ -22,7 +22,7 @@ std::tuple<at::Tensor, at::Tensor> collide_cuda_op(const at::Tensor& x, const at
                                                    at::TensorList poses, c10::IntArrayRef ints,
                                                    c10::ArrayRef<double> floats, double dt, int64_t rounds,
                                                    bool inextensibility, double ftl_damping) {
-  constexpr const char* op = "ams_torch_collide_cuda::collide";
+  constexpr const char* op = "ams_torch_cuda::collide";
   const CollideInputs in = check_collide_inputs(op, x, v, model, head, tensors, poses, ints, floats, dt, rounds,
                                                 inextensibility, ftl_damping);
   TORCH_CHECK(in.x.is_cuda(), op, ": CUDA tensors expected");
@@ -46,10 +46,10 @@ std::tuple<at::Tensor, at::Tensor> collide_cuda_op(const at::Tensor& x, const at
 } // namespace collide
 } // namespace ams_torch
 
-TORCH_LIBRARY(ams_torch_collide_cuda, m) {
+TORCH_LIBRARY_FRAGMENT(ams_torch_cuda, m) {
   m.def(ams_torch::collide::kCollideSchema);
 }
 
-TORCH_LIBRARY_IMPL(ams_torch_collide_cuda, CUDA, m) {
+TORCH_LIBRARY_IMPL(ams_torch_cuda, CUDA, m) {
   m.impl("collide", &ams_torch::collide::collide_cuda_op);
 }

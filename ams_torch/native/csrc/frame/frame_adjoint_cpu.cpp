@@ -1,4 +1,4 @@
-// CPU kernels of the differentiable frame: ops `ams_torch_frame_adjoint_cpu::frame_posed` (the fused
+// CPU kernels of the differentiable frame: ops `ams_torch_cpu::frame_posed` (the fused
 // frame with its substep poses given) and `frame_adjoint` (its vector-Jacobian product;
 // frame_adjoint.h, shared with CUDA). Schemas and shapes: frame_adjoint_binding.h.
 //
@@ -131,8 +131,8 @@ void run_posed(const FrameArgs<T>& args, const FrameSettings& cfg, const T* pose
   });
 }
 
-constexpr const char* kPosedOp = "ams_torch_frame_adjoint_cpu::frame_posed";
-constexpr const char* kAdjointOp = "ams_torch_frame_adjoint_cpu::frame_adjoint";
+constexpr const char* kPosedOp = "ams_torch_cpu::frame_posed";
+constexpr const char* kAdjointOp = "ams_torch_cpu::frame_adjoint";
 
 std::tuple<at::Tensor, at::Tensor> frame_posed_cpu(at::TensorList state, const std::optional<at::Tensor>& ext,
                                                    at::TensorList model,
@@ -172,12 +172,12 @@ std::vector<at::Tensor> frame_adjoint_cpu(at::TensorList state, const std::optio
 } // namespace frame
 } // namespace ams_torch
 
-TORCH_LIBRARY(ams_torch_frame_adjoint_cpu, m) {
+TORCH_LIBRARY_FRAGMENT(ams_torch_cpu, m) {
   m.def(ams_torch::frame::kFramePosedSchema);
   m.def(ams_torch::frame::kFrameAdjointSchema);
 }
 
-TORCH_LIBRARY_IMPL(ams_torch_frame_adjoint_cpu, CPU, m) {
+TORCH_LIBRARY_IMPL(ams_torch_cpu, CPU, m) {
   m.impl("frame_posed", &ams_torch::frame::frame_posed_cpu);
   m.impl("frame_adjoint", &ams_torch::frame::frame_adjoint_cpu);
 }

@@ -1,5 +1,5 @@
 // Torch binding of the CUDA kernels of the differentiable frame: ops
-// `ams_torch_frame_adjoint_cuda::frame_posed` and `frame_adjoint` (schemas and shapes in
+// `ams_torch_cuda::frame_posed` and `frame_adjoint` (schemas and shapes in
 // frame_adjoint_binding.h). Built only against a CUDA torch (it needs torch's CUDA headers); the
 // kernels are in frame_adjoint_cuda.cu, which nvcc compiles without torch headers. Runs on the
 // current CUDA stream of the inputs' device with its workspace from torch's caching allocator; no
@@ -23,8 +23,8 @@ namespace frame {
 
 namespace {
 
-constexpr const char* kPosedOp = "ams_torch_frame_adjoint_cuda::frame_posed";
-constexpr const char* kAdjointOp = "ams_torch_frame_adjoint_cuda::frame_adjoint";
+constexpr const char* kPosedOp = "ams_torch_cuda::frame_posed";
+constexpr const char* kAdjointOp = "ams_torch_cuda::frame_adjoint";
 
 // Run the kernels of one call (adjoint null: the forward into x, v).
 void launch(const char* op, const PosedInputs& in, at::Tensor* x, at::Tensor* v, std::vector<at::Tensor>* out,
@@ -36,7 +36,7 @@ void launch(const char* op, const PosedInputs& in, at::Tensor* x, at::Tensor* v,
       x0.options());
   const cudaStream_t stream = c10::cuda::getCurrentCUDAStream(x0.device().index()).stream();
   cudaError_t err = cudaSuccess;
-  AT_DISPATCH_FLOATING_TYPES(x0.scalar_type(), "ams_torch_frame_adjoint_cuda", [&] {
+  AT_DISPATCH_FLOATING_TYPES(x0.scalar_type(), "ams_torch_cuda", [&] {
     const FrameArgs<scalar_t> args = frame_args<scalar_t>(in.frame);
     const scalar_t* poses = in.poses.const_data_ptr<scalar_t>();
     if (out == nullptr) {
@@ -86,12 +86,12 @@ std::vector<at::Tensor> frame_adjoint_cuda_op(at::TensorList state, const std::o
 } // namespace frame
 } // namespace ams_torch
 
-TORCH_LIBRARY(ams_torch_frame_adjoint_cuda, m) {
+TORCH_LIBRARY_FRAGMENT(ams_torch_cuda, m) {
   m.def(ams_torch::frame::kFramePosedSchema);
   m.def(ams_torch::frame::kFrameAdjointSchema);
 }
 
-TORCH_LIBRARY_IMPL(ams_torch_frame_adjoint_cuda, CUDA, m) {
+TORCH_LIBRARY_IMPL(ams_torch_cuda, CUDA, m) {
   m.impl("frame_posed", &ams_torch::frame::frame_posed_cuda);
   m.impl("frame_adjoint", &ams_torch::frame::frame_adjoint_cuda_op);
 }

@@ -1,4 +1,4 @@
-// CPU kernel of the fused frame of strand dynamics: op `ams_torch_frame_cpu::frame` (schema and
+// CPU kernel of the fused frame of strand dynamics: op `ams_torch_cpu::frame` (schema and
 // shapes in frame_binding.h; arithmetic in frame.h, shared with CUDA).
 //
 // Work is split into tasks of (scene, group of W strands), W the SIMD width of banded_simd.h
@@ -11,9 +11,9 @@
 // calls; nothing is allocated per strand. The last group of a scene is padded with copies of a
 // real strand. The M + 1 substep head poses of every scene are computed once per call.
 //
-// Op `ams_torch_frame_cpu::finish` (finish.h): the frame's end, pinned velocities and speeds
+// Op `ams_torch_cpu::finish` (finish.h): the frame's end, pinned velocities and speeds
 // relative to the head, one pass over the particles, parallel over strands; and
-// `ams_torch_frame_cpu::frame_finish`, the frame with its end fused in (each group's results are
+// `ams_torch_cpu::frame_finish`, the frame with its end fused in (each group's results are
 // finished as soon as they are copied out).
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
@@ -39,7 +39,7 @@ namespace ams_torch {
 namespace frame {
 namespace {
 
-constexpr const char* kOp = "ams_torch_frame_cpu::frame";
+constexpr const char* kOp = "ams_torch_cpu::frame";
 
 using banded::deinterleave;
 using banded::interleave;
@@ -112,7 +112,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> frame_impl(const char* op, const 
   std::optional<FinishInputs> f;
   if (finish_pose != nullptr) f = fused_finish_inputs(op, in, out0, out1, *finish_pose);
   if (in.scenes > 0 && in.strands > 0) {
-    AT_DISPATCH_FLOATING_TYPES(in.state[kX].scalar_type(), "ams_torch_frame_cpu::frame", [&] {
+    AT_DISPATCH_FLOATING_TYPES(in.state[kX].scalar_type(), "ams_torch_cpu::frame", [&] {
       std::optional<FinishArgs<scalar_t>> fa;
       if (f) fa = finish_args<scalar_t>(*f);
       run_frame<scalar_t>(frame_args<scalar_t>(in), in.settings, in.assemble_substep,
@@ -135,7 +135,7 @@ std::tuple<at::Tensor, at::Tensor> frame_contact_cpu(
     at::TensorList state, const std::optional<at::Tensor>& ext, at::TensorList model,
         at::TensorList poses AMS_FRAME_SETTINGS_PARAMS, bool hermite, at::TensorList tensors,
     at::TensorList collider_poses, c10::IntArrayRef ints, c10::ArrayRef<double> floats) {
-  constexpr const char* op = "ams_torch_frame_cpu::frame_contact";
+  constexpr const char* op = "ams_torch_cpu::frame_contact";
   const FrameInputs in = check_frame_inputs(op, state, ext, model, poses AMS_FRAME_SETTINGS_ARGS, hermite, -1);
   TORCH_CHECK(in.state[kX].device().is_cpu(), op, ": CPU tensors expected");
   const ContactInputs cin = check_contact_inputs(op, in, tensors, collider_poses, ints, floats);
@@ -155,7 +155,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> frame_finish_cpu(
     at::TensorList state, const std::optional<at::Tensor>& ext, at::TensorList model,
         at::TensorList poses AMS_FRAME_SETTINGS_PARAMS, bool hermite, int64_t assemble_substep,
     at::TensorList finish_pose) {
-  constexpr const char* op = "ams_torch_frame_cpu::frame_finish";
+  constexpr const char* op = "ams_torch_cpu::frame_finish";
   const FrameInputs in = check_frame_inputs(op, state, ext, model, poses AMS_FRAME_SETTINGS_ARGS, hermite,
       assemble_substep);
   return frame_impl(op, in, &finish_pose);
@@ -163,7 +163,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> frame_finish_cpu(
 
 std::tuple<at::Tensor, at::Tensor> finish_cpu(const at::Tensor& x, const at::Tensor& v, const at::Tensor& num_pinned,
                                               at::TensorList pose) {
-  constexpr const char* op = "ams_torch_frame_cpu::finish";
+  constexpr const char* op = "ams_torch_cpu::finish";
   FinishInputs in = check_finish_inputs(op, x, v, num_pinned, pose);
   TORCH_CHECK(in.x.device().is_cpu(), op, ": CPU tensors expected");
   const int64_t strands = in.scenes * in.strands, n = in.particles;
@@ -182,14 +182,14 @@ std::tuple<at::Tensor, at::Tensor> finish_cpu(const at::Tensor& x, const at::Ten
 } // namespace frame
 } // namespace ams_torch
 
-TORCH_LIBRARY(ams_torch_frame_cpu, m) {
+TORCH_LIBRARY_FRAGMENT(ams_torch_cpu, m) {
   m.def(ams_torch::frame::kFrameSchema);
   m.def(ams_torch::frame::kFrameFinishSchema);
   m.def(ams_torch::frame::kFinishSchema);
   m.def(ams_torch::frame::kFrameContactSchema);
 }
 
-TORCH_LIBRARY_IMPL(ams_torch_frame_cpu, CPU, m) {
+TORCH_LIBRARY_IMPL(ams_torch_cpu, CPU, m) {
   m.impl("frame_contact", &ams_torch::frame::frame_contact_cpu);
   m.impl("frame", &ams_torch::frame::frame_cpu);
   m.impl("frame_finish", &ams_torch::frame::frame_finish_cpu);

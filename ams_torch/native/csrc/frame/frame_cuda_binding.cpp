@@ -1,8 +1,8 @@
-// Torch binding of the CUDA fused frame kernel: op `ams_torch_frame_cuda::frame` (schema and
+// Torch binding of the CUDA fused frame kernel: op `ams_torch_cuda::frame` (schema and
 // shapes in frame_binding.h). Built only against a CUDA torch (it needs torch's CUDA headers);
 // the kernels are in frame_cuda.cu, which nvcc compiles without torch headers. Runs on the
 // current CUDA stream of the inputs' device, with its workspace from torch's caching allocator;
-// no host synchronisation (capturable by CUDA graphs). Also ops `ams_torch_frame_cuda::finish`
+// no host synchronisation (capturable by CUDA graphs). Also ops `ams_torch_cuda::finish`
 // (finish.h, one launch) and `frame_finish` (the frame, then the finish in place on its v').
 #include <ATen/Dispatch.h>
 #include <ATen/core/Tensor.h>
@@ -38,7 +38,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> frame_impl(const char* op, const 
       at::empty({frame_cuda_workspace_elems(in.scenes, in.strands, in.particles, in.settings.substeps)}, x.options());
   const cudaStream_t stream = c10::cuda::getCurrentCUDAStream(x.device().index()).stream();
   cudaError_t err = cudaSuccess;
-  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "ams_torch_frame_cuda::frame", [&] {
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "ams_torch_cuda::frame", [&] {
     err = frame_cuda<scalar_t>(frame_args<scalar_t>(in), in.settings, in.assemble_substep,
                                out0.mutable_data_ptr<scalar_t>(), out1.mutable_data_ptr<scalar_t>(),
                                workspace.mutable_data_ptr<scalar_t>(), stream);
@@ -52,7 +52,7 @@ std::tuple<at::Tensor, at::Tensor> frame_cuda_op(at::TensorList state, const std
                                                  at::TensorList model, at::TensorList poses AMS_FRAME_SETTINGS_PARAMS,
                                                      bool hermite,
                                                  int64_t assemble_substep) {
-  constexpr const char* op = "ams_torch_frame_cuda::frame";
+  constexpr const char* op = "ams_torch_cuda::frame";
   const FrameInputs in = check_frame_inputs(op, state, ext, model, poses AMS_FRAME_SETTINGS_ARGS, hermite,
       assemble_substep);
   const auto out = frame_impl(op, in, nullptr);
@@ -63,7 +63,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> frame_finish_cuda_op(
     at::TensorList state, const std::optional<at::Tensor>& ext, at::TensorList model,
         at::TensorList poses AMS_FRAME_SETTINGS_PARAMS, bool hermite, int64_t assemble_substep,
     at::TensorList finish_pose) {
-  constexpr const char* op = "ams_torch_frame_cuda::frame_finish";
+  constexpr const char* op = "ams_torch_cuda::frame_finish";
   const FrameInputs in = check_frame_inputs(op, state, ext, model, poses AMS_FRAME_SETTINGS_ARGS, hermite,
       assemble_substep);
   return frame_impl(op, in, &finish_pose);
@@ -73,7 +73,7 @@ std::tuple<at::Tensor, at::Tensor> frame_contact_cuda_op(
     at::TensorList state, const std::optional<at::Tensor>& ext, at::TensorList model,
         at::TensorList poses AMS_FRAME_SETTINGS_PARAMS, bool hermite, at::TensorList tensors,
     at::TensorList collider_poses, c10::IntArrayRef ints, c10::ArrayRef<double> floats) {
-  constexpr const char* op = "ams_torch_frame_cuda::frame_contact";
+  constexpr const char* op = "ams_torch_cuda::frame_contact";
   const FrameInputs in = check_frame_inputs(op, state, ext, model, poses AMS_FRAME_SETTINGS_ARGS, hermite, -1);
   const at::Tensor& x = in.state[kX];
   TORCH_CHECK(x.is_cuda(), op, ": CUDA tensors expected");
@@ -100,7 +100,7 @@ std::tuple<at::Tensor, at::Tensor> frame_contact_cuda_op(
 
 std::tuple<at::Tensor, at::Tensor> finish_cuda_op(const at::Tensor& x, const at::Tensor& v,
                                                   const at::Tensor& num_pinned, at::TensorList pose) {
-  constexpr const char* op = "ams_torch_frame_cuda::finish";
+  constexpr const char* op = "ams_torch_cuda::finish";
   TORCH_CHECK(x.is_cuda(), op, ": CUDA tensors expected");
   const c10::cuda::CUDAGuard guard(x.device());
   FinishInputs in = check_finish_inputs(op, x, v, num_pinned, pose);
@@ -116,14 +116,14 @@ std::tuple<at::Tensor, at::Tensor> finish_cuda_op(const at::Tensor& x, const at:
 } // namespace frame
 } // namespace ams_torch
 
-TORCH_LIBRARY(ams_torch_frame_cuda, m) {
+TORCH_LIBRARY_FRAGMENT(ams_torch_cuda, m) {
   m.def(ams_torch::frame::kFrameSchema);
   m.def(ams_torch::frame::kFrameFinishSchema);
   m.def(ams_torch::frame::kFinishSchema);
   m.def(ams_torch::frame::kFrameContactSchema);
 }
 
-TORCH_LIBRARY_IMPL(ams_torch_frame_cuda, CUDA, m) {
+TORCH_LIBRARY_IMPL(ams_torch_cuda, CUDA, m) {
   m.impl("frame_contact", &ams_torch::frame::frame_contact_cuda_op);
   m.impl("frame", &ams_torch::frame::frame_cuda_op);
   m.impl("frame_finish", &ams_torch::frame::frame_finish_cuda_op);

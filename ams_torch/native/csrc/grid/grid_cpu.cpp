@@ -1,4 +1,4 @@
-// CPU kernels of the block-sparse hair–hair grid: ops `ams_torch_grid_cpu::{p2g, pressure, g2p}`
+// CPU kernels of the block-sparse hair–hair grid: ops `ams_torch_cpu::{p2g, pressure, g2p}`
 // (shapes in grid.h and ams_torch/stages/hair_hair/native.py). The arithmetic is grid.h's, shared
 // with CUDA. Work and storage follow the blocks the hair occupies: nothing here visits R^3 cells.
 //
@@ -93,23 +93,23 @@ int popcount(uint64_t bits) {
 }
 
 void check_common(const char* op, const at::Tensor& t, const char* name, at::ScalarType dtype) {
-  TORCH_CHECK(t.device().is_cpu(), "ams_torch_grid_cpu::", op, ": ", name, " must be a CPU tensor");
-  TORCH_CHECK(t.scalar_type() == dtype, "ams_torch_grid_cpu::", op, ": ", name, " must be ", dtype, ", got ",
+  TORCH_CHECK(t.device().is_cpu(), "ams_torch_cpu::", op, ": ", name, " must be a CPU tensor");
+  TORCH_CHECK(t.scalar_type() == dtype, "ams_torch_cpu::", op, ": ", name, " must be ", dtype, ", got ",
               t.scalar_type());
 }
 
 void check_particles(const char* op, const at::Tensor& x, const at::Tensor& v, const at::Tensor& frame,
                      const at::Tensor& origin, double cell_size, int64_t r) {
-  TORCH_CHECK(x.dim() == 3 && x.size(2) == 3, "ams_torch_grid_cpu::", op, ": x must be (B, P, 3), got ", x.sizes());
-  TORCH_CHECK(v.sizes() == x.sizes(), "ams_torch_grid_cpu::", op, ": v must be ", x.sizes(), ", got ", v.sizes());
+  TORCH_CHECK(x.dim() == 3 && x.size(2) == 3, "ams_torch_cpu::", op, ": x must be (B, P, 3), got ", x.sizes());
+  TORCH_CHECK(v.sizes() == x.sizes(), "ams_torch_cpu::", op, ": v must be ", x.sizes(), ", got ", v.sizes());
   TORCH_CHECK(frame.dim() == 3 && frame.size(0) == x.size(0) && frame.size(1) == 6 && frame.size(2) == 3,
-              "ams_torch_grid_cpu::", op, ": frame must be (B, 6, 3), got ", frame.sizes());
-  TORCH_CHECK(origin.dim() == 1 && origin.size(0) == 3, "ams_torch_grid_cpu::", op, ": origin must be (3,)");
-  TORCH_CHECK(r >= 2 && cell_size > 0, "ams_torch_grid_cpu::", op, ": need resolution >= 2 and cell_size > 0");
+              "ams_torch_cpu::", op, ": frame must be (B, 6, 3), got ", frame.sizes());
+  TORCH_CHECK(origin.dim() == 1 && origin.size(0) == 3, "ams_torch_cpu::", op, ": origin must be (3,)");
+  TORCH_CHECK(r >= 2 && cell_size > 0, "ams_torch_cpu::", op, ": need resolution >= 2 and cell_size > 0");
   TORCH_CHECK(blocks_per_axis(r) * blocks_per_axis(r) * blocks_per_axis(r) < (int64_t(1) << 31),
-              "ams_torch_grid_cpu::", op, ": resolution too large (at most 2^31 - 1 blocks)");
+              "ams_torch_cpu::", op, ": resolution too large (at most 2^31 - 1 blocks)");
   const auto dtype = x.scalar_type();
-  TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, "ams_torch_grid_cpu::", op, ": float32 or float64 only");
+  TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, "ams_torch_cpu::", op, ": float32 or float64 only");
   check_common(op, x, "x", dtype);
   check_common(op, v, "v", dtype);
   check_common(op, frame, "frame", dtype);
@@ -117,7 +117,7 @@ void check_particles(const char* op, const at::Tensor& x, const at::Tensor& v, c
 }
 
 void check_int(const char* op, const at::Tensor& t, const char* name, at::IntArrayRef sizes) {
-  TORCH_CHECK(t.device().is_cpu() && t.scalar_type() == at::kInt && t.sizes() == sizes, "ams_torch_grid_cpu::", op,
+  TORCH_CHECK(t.device().is_cpu() && t.scalar_type() == at::kInt && t.sizes() == sizes, "ams_torch_cpu::", op,
               ": ", name, " must be a CPU int32 tensor of shape ", sizes, ", got ", t.scalar_type(), " ", t.sizes());
 }
 
@@ -300,13 +300,13 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> p2g_cpu(const at::Ten
                                                                    int64_t resolution, int64_t capacity) {
   check_particles("p2g", x, v, frame, origin, cell_size, resolution);
   TORCH_CHECK(m.dim() == 2 && m.size(0) == x.size(0) && m.size(1) == x.size(1),
-              "ams_torch_grid_cpu::p2g: m must be (B, P), got ", m.sizes());
+              "ams_torch_cpu::p2g: m must be (B, P), got ", m.sizes());
   check_common("p2g", m, "m", x.scalar_type());
   const int64_t B = x.size(0), P = x.size(1), r = resolution, K = capacity;
   const int64_t nb = blocks_per_axis(r);
-  TORCH_CHECK(K >= 1 && K <= nb * nb * nb, "ams_torch_grid_cpu::p2g: capacity must be in [1, ", nb * nb * nb,
+  TORCH_CHECK(K >= 1 && K <= nb * nb * nb, "ams_torch_cpu::p2g: capacity must be in [1, ", nb * nb * nb,
               "] blocks, got ", K);
-  TORCH_CHECK(P < (int64_t(1) << 31), "ams_torch_grid_cpu::p2g: at most 2^31 - 1 particles per scene");
+  TORCH_CHECK(P < (int64_t(1) << 31), "ams_torch_cpu::p2g: at most 2^31 - 1 particles per scene");
   at::Tensor faces = at::empty({B, K, 3, kBlockCells, 2}, x.options());
   at::Tensor table = at::empty({B, nb * nb * nb}, x.options().dtype(at::kInt));
   at::Tensor blocks = at::empty({B, K}, x.options().dtype(at::kInt));
@@ -314,7 +314,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> p2g_cpu(const at::Ten
   if (B == 0) return {faces, table, blocks, count};
   const at::Tensor xc = x.contiguous(), vc = v.contiguous(), mc = m.contiguous(), fc = frame.contiguous(),
                    oc = origin.contiguous();
-  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "ams_torch_grid_cpu::p2g", [&] {
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "ams_torch_cpu::p2g", [&] {
     p2g_impl<scalar_t>(xc.const_data_ptr<scalar_t>(), vc.const_data_ptr<scalar_t>(), mc.const_data_ptr<scalar_t>(),
                        fc.const_data_ptr<scalar_t>(), oc.const_data_ptr<scalar_t>(), faces.mutable_data_ptr<scalar_t>(),
                        table.mutable_data_ptr<int32_t>(), blocks.mutable_data_ptr<int32_t>(),
@@ -446,17 +446,17 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pressure_cpu(const at::Tensor& fa
                                                             double omega, double stiffness, double pic,
                                                             int64_t active_capacity) {
   const int64_t r = resolution;
-  TORCH_CHECK(r >= 2 && cell_size > 0, "ams_torch_grid_cpu::pressure: need resolution >= 2 and cell_size > 0");
+  TORCH_CHECK(r >= 2 && cell_size > 0, "ams_torch_cpu::pressure: need resolution >= 2 and cell_size > 0");
   TORCH_CHECK(faces.dim() == 5 && faces.size(2) == 3 && faces.size(3) == kBlockCells && faces.size(4) == 2,
-              "ams_torch_grid_cpu::pressure: faces must be (B, K, 3, 64, 2), got ", faces.sizes());
+              "ams_torch_cpu::pressure: faces must be (B, K, 3, 64, 2), got ", faces.sizes());
   const int64_t B = faces.size(0), K = faces.size(1), nb = blocks_per_axis(r);
   check_int("pressure", table, "table", {B, nb * nb * nb});
   check_int("pressure", blocks, "blocks", {B, K});
   check_int("pressure", count, "count", {B});
-  TORCH_CHECK(target.dim() == 0 && dt.dim() == 0, "ams_torch_grid_cpu::pressure: target and dt must be 0-d tensors");
-  TORCH_CHECK(iterations >= 0, "ams_torch_grid_cpu::pressure: iterations must be >= 0");
+  TORCH_CHECK(target.dim() == 0 && dt.dim() == 0, "ams_torch_cpu::pressure: target and dt must be 0-d tensors");
+  TORCH_CHECK(iterations >= 0, "ams_torch_cpu::pressure: iterations must be >= 0");
   const auto dtype = faces.scalar_type();
-  TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, "ams_torch_grid_cpu::pressure: float32 or float64 only");
+  TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, "ams_torch_cpu::pressure: float32 or float64 only");
   check_common("pressure", faces, "faces", dtype);
   check_common("pressure", target, "target", dtype);
   check_common("pressure", dt, "dt", dtype);
@@ -466,7 +466,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pressure_cpu(const at::Tensor& fa
   at::Tensor overflow = at::empty({B}, faces.options().dtype(at::kBool));
   if (B == 0) return {phi_a, field, overflow};
   const at::Tensor fc = faces.contiguous(), tc = table.contiguous(), bc = blocks.contiguous(), cc = count.contiguous();
-  AT_DISPATCH_FLOATING_TYPES(dtype, "ams_torch_grid_cpu::pressure", [&] {
+  AT_DISPATCH_FLOATING_TYPES(dtype, "ams_torch_cpu::pressure", [&] {
     pressure_impl<scalar_t>(fc.const_data_ptr<scalar_t>(), tc.const_data_ptr<int32_t>(), bc.const_data_ptr<int32_t>(),
                             cc.const_data_ptr<int32_t>(), target.item<scalar_t>(), dt.item<scalar_t>(),
                             phi_a.mutable_data_ptr<scalar_t>(), phi_b.mutable_data_ptr<scalar_t>(),
@@ -543,21 +543,21 @@ std::tuple<at::Tensor, at::Tensor> g2p_cpu(const at::Tensor& x, const at::Tensor
   check_particles("g2p", x, v, frame, origin, cell_size, resolution);
   const int64_t B = x.size(0), P = x.size(1), r = resolution, nb = blocks_per_axis(r);
   TORCH_CHECK(field.dim() == 4 && field.size(0) == B && field.size(2) == 3 && field.size(3) == kBlockCells,
-              "ams_torch_grid_cpu::g2p: field must be (B, K, 3, 64), got ", field.sizes());
+              "ams_torch_cpu::g2p: field must be (B, K, 3, 64), got ", field.sizes());
   const int64_t K = field.size(1);
   check_common("g2p", field, "field", x.scalar_type());
   check_int("g2p", table, "table", {B, nb * nb * nb});
   check_common("g2p", dt, "dt", x.scalar_type());
-  TORCH_CHECK(dt.dim() == 0, "ams_torch_grid_cpu::g2p: dt must be a 0-d tensor");
+  TORCH_CHECK(dt.dim() == 0, "ams_torch_cpu::g2p: dt must be a 0-d tensor");
   TORCH_CHECK(free.dim() == 1 && free.size(0) > 0 && P % free.size(0) == 0 && free.scalar_type() == at::kBool &&
                   free.device().is_cpu(),
-              "ams_torch_grid_cpu::g2p: free must be a CPU bool tensor (N,) with N dividing P, got ", free.sizes());
+              "ams_torch_cpu::g2p: free must be a CPU bool tensor (N,) with N dividing P, got ", free.sizes());
   at::Tensor xo = at::empty({B, P, 3}, x.options());
   at::Tensor vo = at::empty({B, P, 3}, x.options());
   if (B * P == 0) return {xo, vo};
   const at::Tensor xc = x.contiguous(), vc = v.contiguous(), fc = field.contiguous(), tc = table.contiguous(),
                    frc = frame.contiguous(), oc = origin.contiguous(), freec = free.contiguous();
-  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "ams_torch_grid_cpu::g2p", [&] {
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "ams_torch_cpu::g2p", [&] {
     g2p_impl<scalar_t>(xc.const_data_ptr<scalar_t>(), vc.const_data_ptr<scalar_t>(), fc.const_data_ptr<scalar_t>(),
                        tc.const_data_ptr<int32_t>(), frc.const_data_ptr<scalar_t>(), oc.const_data_ptr<scalar_t>(),
                        freec.const_data_ptr<bool>(), dt.item<scalar_t>(), xo.mutable_data_ptr<scalar_t>(),
@@ -570,7 +570,7 @@ std::tuple<at::Tensor, at::Tensor> g2p_cpu(const at::Tensor& x, const at::Tensor
 } // namespace grid
 } // namespace ams_torch
 
-TORCH_LIBRARY(ams_torch_grid_cpu, m) {
+TORCH_LIBRARY_FRAGMENT(ams_torch_cpu, m) {
   m.def("p2g(Tensor x, Tensor v, Tensor m, Tensor frame, Tensor origin, float cell_size, int resolution, "
         "int capacity) -> (Tensor, Tensor, Tensor, Tensor)");
   m.def("pressure(Tensor faces, Tensor table, Tensor blocks, Tensor count, Tensor target, Tensor dt, "
@@ -580,7 +580,7 @@ TORCH_LIBRARY(ams_torch_grid_cpu, m) {
         "float cell_size, int resolution, float pic) -> (Tensor, Tensor)");
 }
 
-TORCH_LIBRARY_IMPL(ams_torch_grid_cpu, CPU, m) {
+TORCH_LIBRARY_IMPL(ams_torch_cpu, CPU, m) {
   m.impl("p2g", &ams_torch::grid::p2g_cpu);
   m.impl("pressure", &ams_torch::grid::pressure_cpu);
   m.impl("g2p", &ams_torch::grid::g2p_cpu);
