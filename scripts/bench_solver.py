@@ -1,7 +1,7 @@
 """Benchmark of the banded strand solve: native kernel vs plain torch vs dense vs SciPy.
 
 For every strand count S, particle count N and dtype, times the same assembled systems
-(the tests' factory, ``tests/test_native_solver.py::strand_system``) with:
+(the tests' factory, ``tests/native_cases.py::strand_system``) with:
 
     native  ams_torch.solver.op.solve_banded(check=False) (the registered op; native CPU/CUDA
             kernel), as the simulator's step calls it
@@ -50,7 +50,7 @@ DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
 def _load_factory():
-    spec = importlib.util.spec_from_file_location("_bench_tests_factory", REPO / "tests" / "test_native_solver.py")
+    spec = importlib.util.spec_from_file_location("_bench_tests_factory", REPO / "tests" / "native_cases.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod.strand_system

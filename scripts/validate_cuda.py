@@ -10,7 +10,8 @@ the others; every result is written as soon as it is known):
   preflight  CUDA torch, a GPU, nvcc's CUDA major = torch's, ninja, a C++ compiler; versions.
   build      every backend (CUDA, CPU, the emulator's self-test) from an empty cache
              (OUT_DIR/cache), in parallel; a backend that does not build is a failure.
-  tests      the CUDA tests (pytest -k cuda over the native, CUDA-device and CUDA-graph tests).
+  tests      the CUDA tests (pytest -k cuda over the native, CUDA-device and CUDA-graph tests; --dry-run:
+             collected, and tests/test_cuda_device.py run on the CPU with AMS_TORCH_CUDA_TEST_DEVICE=cpu).
   compile    torch.compile(sim.step, fullgraph=True) (inductor) of an every-stage scene, vs eager.
   parity     the default scene (make demo), 120 frames, CPU vs CUDA: float64 <= 1e-9 m, float32
              <= 1e-4 m (max |x| difference over every particle and frame).
@@ -174,6 +175,14 @@ def step_tests(ctx: dict) -> dict:
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=ctx["timeout"])
     tail = proc.stdout.strip().splitlines()[-1:] or [""]
     print(proc.stdout[-6000:], proc.stderr[-3000:])
+    if ctx["dry"] and proc.returncode == 0:
+        # the GPU-only test module's code on the CPU (its device and reference are then the same
+        # kernels): a test that went stale against the ops fails here, not on the first GPU
+        env = dict(os.environ, AMS_TORCH_CUDA_TEST_DEVICE="cpu")
+        proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", TEST_FILES[0]],
+                              capture_output=True, text=True, cwd=ROOT, timeout=ctx["timeout"], env=env)
+        print(proc.stdout[-6000:], proc.stderr[-3000:])
+        tail = [f"{tail[0]}; {TEST_FILES[0]} on the CPU: " + ((proc.stdout.strip().splitlines() or [""])[-1])]
     return {"status": "pass" if proc.returncode == 0 else "fail", "detail": tail[0], "returncode": proc.returncode}
 
 
