@@ -2,7 +2,7 @@
 import json
 
 import pytest
-from conftest import built_native, load_script
+from helpers import built_native, load_script
 
 
 def test_bench_datasets_simulation_section(tmp_path):

@@ -2,7 +2,7 @@
 docs/benchmarks/frame.md, docs/benchmarks/parity.md)."""
 import json
 
-from conftest import built_native, load_script
+from helpers import built_native, load_script
 
 
 def test_bench_frame_smoke(tmp_path, capsys):

@@ -1,7 +1,7 @@
 """scripts/bench_hair_hair.py at toy sizes (the full run is by hand: docs/benchmarks/hair_hair.md)."""
 import json
 
-from conftest import built_native, load_script
+from helpers import built_native, load_script
 
 
 def test_bench_hair_hair_smoke(tmp_path):

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import built_native
+from helpers import built_native
 
 from ams_torch.native import build as _native
 from ams_torch.native.cuda_arch import nvcc_arches, parse_arch_list, resolve_arch_list

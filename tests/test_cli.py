@@ -10,7 +10,7 @@ import h5py
 import pytest
 import imageio.v3 as iio
 import numpy as np
-from conftest import sha
+from helpers import sha
 
 from ams_torch.apps.cli import main, read_sequence
 from ams_torch.apps.datagen import generate, shard_filename

@@ -15,7 +15,7 @@ import os
 
 import pytest
 import torch
-from conftest import built_native, rel
+from helpers import built_native, rel
 from native_cases import (F32, F64, case_scene, expected_warp_ops, frame_args, make_case, make_colliders, make_scene,
                           native_frame, native_system, set_pinned, solve_args, squeeze_scene, tol as grid_tol)
 

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import built_native, rel
+from helpers import built_native, rel
 from native_cases import (FRAME_CASES, case_scene, expected_warp_ops, frame_args, make_case, native_frame,
                           native_system, solve_args, squeeze_scene, strand_system, tol as grid_tol)
 

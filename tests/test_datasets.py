@@ -8,7 +8,7 @@ import h5py
 import numpy as np
 import pytest
 import torch
-from conftest import sha
+from helpers import sha
 
 from ams_torch.apps.cli import main
 from ams_torch.apps.data import DatasetError, HairSequenceDataset, read_scene_meshes, validate, validate_file

@@ -4,7 +4,7 @@ on a stiff float32 strand system its backward error is far above ours (the bande
 
 import pytest
 import torch
-from conftest import load_script
+from helpers import load_script
 
 from ams_torch.solver.reference import banded_matvec, banded_to_dense
 

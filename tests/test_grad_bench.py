@@ -2,7 +2,7 @@
 docs/benchmarks/grad.md)."""
 import json
 
-from conftest import load_script
+from helpers import load_script
 
 
 def test_bench_grad_smoke(tmp_path):

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import built_native
+from helpers import built_native
 
 import ams_torch as at
 from ams_torch.geometry.pose import Pose

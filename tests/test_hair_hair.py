@@ -5,7 +5,7 @@ import pytest
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from conftest import DEVICES
+from helpers import DEVICES
 
 from ams_torch.stages.hair_hair import HairHair, build_hair_hair, grid_density, hair_hair_stage, make_stage
 from ams_torch.stages.hair_hair.detailed import detailed_collisions

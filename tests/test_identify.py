@@ -6,7 +6,7 @@ import time
 
 import pytest
 import torch
-from conftest import load_script
+from helpers import load_script
 
 import ams_torch as at
 from ams_torch.testing import sphere_groom

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 import torch.multiprocessing as mp
-from conftest import load_script
+from helpers import load_script
 from learned_data import DenseGuides, toy_dataset
 
 import ams_torch as at

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import rel
+from helpers import rel
 from native_cases import F32, F64, KINDS, make_case
 
 from ams_torch.apps.motion import Shake

@@ -13,7 +13,7 @@ from functools import partial
 
 import pytest
 import torch
-from conftest import rel
+from helpers import rel
 from native_cases import KINDS, make_colliders
 
 from ams_torch.apps.motion import Shake

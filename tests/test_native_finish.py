@@ -14,7 +14,7 @@ from ams_torch.sim.op_support import pose_tensors
 from ams_torch.sim.state import Control
 from ams_torch.sim.stepping import SimulationDiverged, check_state, step
 from ams_torch.stages.collide import SphereCollider
-from conftest import DEVICES, rel
+from helpers import DEVICES, rel
 from native_cases import F32, F64, frame_args, make_scene, native_ns
 
 EPS64 = torch.finfo(F64).eps

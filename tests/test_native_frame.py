@@ -27,7 +27,7 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-from conftest import DEVICES, rel
+from helpers import DEVICES, rel
 from native_cases import (F32, F64, FRAME_CASES, case_scene, frame_args, make_scene, native_frame, native_ns,
                           native_system, set_pinned)
 

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import DEVICES
+from helpers import DEVICES
 from native_cases import DT, F64_REL, MASS, solve_args, squeeze_scene, tol
 from torch.utils._python_dispatch import TorchDispatchMode
 

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from conftest import DEVICES
+from helpers import DEVICES
 from native_cases import H, strand_system
 
 from ams_torch.native import build as _native

@@ -22,7 +22,7 @@ from hypothesis import strategies as st
 from ams_torch.apps.cli import main
 
 from toml_strategies import mutate, sampler, toml_value
-from conftest import run_cli
+from helpers import run_cli
 
 SLOW = os.environ.get("HYPOTHESIS_PROFILE") == "slow"
 PROFILE = dict(max_examples=150 if SLOW else 6, deadline=None, derandomize=not SLOW,

@@ -15,7 +15,7 @@ from ams_torch.apps.data import validate
 from ams_torch.apps.datagen import OutputError, generate
 from ams_torch.apps.recipe import load_recipe
 
-from conftest import REPO as ROOT, one_error, run_cli
+from helpers import REPO as ROOT, one_error, run_cli
 
 MINI = """
 name = "mini"

@@ -149,7 +149,7 @@ def test_running_out_of_memory_anyway_is_one_error_line(tmp_path, capsys, monkey
 def test_the_estimates_per_unit_costs_bound_the_measured_ones():
     """scripts/memory_costs.py at small sizes: each measured peak cost (bytes per particle on both
     paths, per SDF sample, per grid cell built) is below the constant the estimate uses."""
-    from conftest import load_script
+    from helpers import load_script
 
     mc = load_script("memory_costs")
     # sizes whose difference is tens of MB, well above the noise of a process's peak RSS

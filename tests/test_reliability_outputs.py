@@ -12,7 +12,7 @@ import h5py
 import imageio.v3 as iio
 import numpy as np
 import pytest
-from conftest import one_error, run_cli
+from helpers import one_error, run_cli
 
 from ams_torch.apps.atomic import WriteError, h5_file, remove_stale, temp_name
 from ams_torch.apps.cli import main
