@@ -199,7 +199,7 @@ def _segment_runner(sim, items: List[tuple], start: int, observe, reduce, keep_s
         outs = []
         for i, (pose, collider_poses, external_force) in enumerate(items):
             control = sim.control(state, pose, collider_poses=collider_poses, external_force=external_force)
-            state = _step(sim.model, state, control, sim.config)
+            state = _step(sim.model, state, control, sim.config, stages=sim.stages)
             if observe is not None:
                 outs.append(observe(state))
             elif keep_states:
