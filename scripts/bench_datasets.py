@@ -340,7 +340,38 @@ def _sim_lines(rec: dict) -> list:
         lines.append(f"| {r['strands']:,} | {r['batch']} | {r['ms_per_frame']:.1f} | {r['cpu_ms_per_frame']:.1f} | "
                      f"{r['sequence_frames_per_s']:.1f} | {r['sequence_frames_per_s_per_core']:.1f} | "
                      f"{r['batch_ratio']:.2f} | {ok} |")
-    return lines + [""]
+    return lines + [""] + _batch_model_lines(sims)
+
+
+def batch_model(sims: list) -> dict:
+    """Per strand count, the least-squares line cost(B) = shared + per_scene · B (ms per frame) over
+    the batch sizes measured: what a frame pays once (Python between kernels, thread start-up, a
+    scene-independent pass) and what each scene adds."""
+    out = {}
+    for s in sorted({r["strands"] for r in sims}):
+        pts = [(r["batch"], r["ms_per_frame"]) for r in sims if r["strands"] == s]
+        if len({b for b, _ in pts}) < 2:
+            continue
+        n = len(pts)
+        mb, mt = sum(b for b, _ in pts) / n, sum(t for _, t in pts) / n
+        slope = sum((b - mb) * (t - mt) for b, t in pts) / sum((b - mb) ** 2 for b, _ in pts)
+        out[s] = {"shared_ms": mt - slope * mb, "per_scene_ms": slope}
+    return out
+
+
+def _batch_model_lines(sims: list) -> list:
+    model = batch_model(sims)
+    if not model:
+        return []
+    parts = [f"{s:,} strands: {m['shared_ms']:.1f} ms shared + {m['per_scene_ms']:.1f} ms per scene"
+             for s, m in model.items()]
+    need = (4 - 4 * BATCH_TARGET) / (4 * BATCH_TARGET - 1)  # ratio(4) <= target  <=>  shared >= need * per_scene
+    return [f"Why the ratio stays where it is: fitted per frame, {'; '.join(parts)}. With cost(B) = shared + B · "
+            f"per-scene, the ratio at B = 4 is (shared + 4 · per-scene) / (4 · (shared + per-scene)), at most "
+            f"{BATCH_TARGET} only when the shared part is at least {need:.2f}× one scene's own work. Every stage's "
+            "work here is per scene (each scene has its own strands, contacts and grid), so on a CPU that the "
+            "single scene already keeps busy batching saves only the shared overhead; the 0.6 target needs a "
+            "device that one scene leaves mostly idle (a GPU), where B scenes fill the same launches.", ""]
 
 
 def _ray_lines(rec: dict) -> list:
