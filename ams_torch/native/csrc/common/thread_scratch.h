@@ -1,6 +1,8 @@
-// Per-thread scratch for the CPU kernels (banded solve, fused frame, collision stage): 64-byte
-// aligned, grown on demand and reused across calls. CPU only (needs torch's TORCH_CHECK); each
-// extension that includes it gets its own thread_local buffer.
+// Per-thread scratch for the CPU kernels (banded solve, fused frame, collision stage, grid):
+// 64-byte aligned, grown on demand and reused across calls. CPU only (needs torch's TORCH_CHECK).
+// One buffer per thread for the whole CPU library (every kernel shares it): a kernel holding its
+// scratch must not call code that asks for scratch on the same thread (none does: each op takes
+// it once, at its top level or once per worker-thread task).
 #pragma once
 
 #include <c10/util/Exception.h>

@@ -30,10 +30,10 @@
 #include <algorithm>
 #include <cstdint>
 #include <cstring>
-#include <memory>
 #include <tuple>
 #include <vector>
 
+#include "common/thread_scratch.h"
 #include "grid/grid.h"
 #include "grid/grid_simd.h"
 
@@ -44,6 +44,30 @@ namespace {
 constexpr int64_t kSlab = 4; // cells per x-slab of the P2G colouring (>= 2)
 constexpr int64_t kParticleGrain = 1024;
 constexpr int64_t kSlotGrain = 16;
+
+// The large temporaries of one op call, carved from the calling thread's scratch
+// (common/thread_scratch.h: kept across calls), not allocated per call: at R = 128 they are
+// megabytes, which malloc maps fresh and the kernel then page-faults in, every frame.
+class Carve {
+ public:
+  explicit Carve(size_t bytes, const char* what)
+      : base_(static_cast<char*>(ams_torch::thread_scratch(bytes + 64 * kParts, what))) {}
+  template <class U>
+  U* take(int64_t n) {
+    U* out = reinterpret_cast<U*>(base_ + used_);
+    used_ += (size_t(n) * sizeof(U) + 63) / 64 * 64;
+    return out;
+  }
+  template <class U>
+  static size_t bytes(int64_t n) {
+    return (size_t(n) * sizeof(U) + 63) / 64 * 64;
+  }
+  static constexpr int kParts = 8; // at most this many take() per call
+
+ private:
+  char* base_;
+  size_t used_ = 0;
+};
 
 void set_mark(uint8_t* p) {
 #if defined(__GNUC__)
@@ -235,22 +259,25 @@ void p2g_impl(const T* x, const T* v, const T* m, const T* frame, const T* origi
   const int64_t slabs = (r + kSlab - 1) / kSlab;
   constexpr int W = lanes_of<T>();
   const int64_t batches = (P + W - 1) / W;
-  std::vector<T> head(size_t(B * P * 6));
-  std::vector<int32_t> slab(size_t(B * P));
-  std::vector<uint8_t> mark(size_t(B * nb3), 0);
+  Carve scratch(Carve::bytes<T>(B * P * 6) + Carve::bytes<int32_t>(B * P) * 2 + Carve::bytes<uint8_t>(B * nb3),
+                "grid P2G");
+  T* head = scratch.take<T>(B * P * 6);
+  int32_t* slab = scratch.take<int32_t>(B * P);
+  int32_t* order = scratch.take<int32_t>(B * P);
+  uint8_t* mark = scratch.take<uint8_t>(B * nb3);
+  std::memset(mark, 0, size_t(B * nb3));
   at::parallel_for(0, B * batches, kParticleGrain / W, [&](int64_t t0, int64_t t1) {
     for (int64_t t = t0; t < t1; ++t) {
       const int64_t b = t / batches, first = (t % batches) * W;
       p2g_mark(x + 3 * b * P, v + 3 * b * P, frame + 18 * b, origin, h, r, nb, first,
-               int(std::min<int64_t>(W, P - first)), head.data() + 6 * b * P, slab.data() + b * P, mark.data() + b * nb3);
+               int(std::min<int64_t>(W, P - first)), head + 6 * b * P, slab + b * P, mark + b * nb3);
     }
   });
   // per scene: slots in block order, particles sorted by slab
   std::vector<int64_t> start(size_t(B * (slabs + 1)));
-  std::vector<int32_t> order(size_t(B * P));
   at::parallel_for(0, B, 1, [&](int64_t b0, int64_t b1) {
     for (int64_t b = b0; b < b1; ++b) {
-      const uint8_t* mk = mark.data() + b * nb3;
+      const uint8_t* mk = mark + b * nb3;
       int32_t* tb = table + b * nb3;
       int32_t* bl = blocks + b * K;
       int64_t n = 0;
@@ -287,7 +314,7 @@ void p2g_impl(const T* x, const T* v, const T* m, const T* frame, const T* origi
         const int64_t s = colour + 2 * (t % per_scene);
         const int64_t* st = start.data() + b * (slabs + 1);
         for (int64_t i = st[s]; i < st[s + 1]; i += W)
-          p2g_scatter(head.data() + 6 * b * P, m + b * P, order.data() + b * P, i,
+          p2g_scatter(head + 6 * b * P, m + b * P, order + b * P, i,
                       int(std::min<int64_t>(W, st[s + 1] - i)), origin, h, r, nb, table + b * nb3, faces + b * pool);
       }
     });
@@ -325,7 +352,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> p2g_cpu(const at::Ten
 
 template <class T>
 void pressure_impl(const T* faces, const int32_t* table, const int32_t* blocks, const int32_t* count, T rho0, T dt,
-                   T* phi_a, T* phi_b, T* field, bool* overflow, int64_t B, int64_t r, int64_t K,
+                   T* phi_out, T* field, bool* overflow, int64_t B, int64_t r, int64_t K,
                    double cell_size, int64_t iterations, double omega, double stiffness, double pic,
                    int64_t active_capacity) {
   const PressureConsts<T> q = pressure_consts<T>(cell_size, rho0, dt, omega, stiffness, pic);
@@ -345,7 +372,13 @@ void pressure_impl(const T* faces, const int32_t* table, const int32_t* blocks, 
   std::vector<int32_t> nbr(size_t(U * 6));
   std::vector<uint8_t> awake(static_cast<size_t>(U), 0);
   std::vector<uint64_t> active(static_cast<size_t>(U), 0); // bit l: cell l of the slot is active
-  std::unique_ptr<T[]> entries(iterations > 0 ? new T[size_t(U * kBlockCells * kEntry)] : nullptr);
+  // the sweeps' two phi buffers: phi_out is the one the last sweep writes, the other is scratch
+  Carve scratch(Carve::bytes<T>(iterations > 0 ? U * kBlockCells * kEntry : 0) + Carve::bytes<T>(B * K * kBlockCells),
+                "grid pressure");
+  T* const entries = scratch.take<T>(iterations > 0 ? U * kBlockCells * kEntry : 0);
+  T* const phi_other = scratch.take<T>(B * K * kBlockCells);
+  T* const phi_a = iterations % 2 == 0 ? phi_out : phi_other;
+  T* const phi_b = iterations % 2 == 0 ? phi_other : phi_out;
   at::parallel_for(0, U, kSlotGrain, [&](int64_t u0, int64_t u1) {
     for (int64_t u = u0; u < u1; ++u) {
       const int64_t b = scene[u], slot = u - first[b];
@@ -355,7 +388,7 @@ void pressure_impl(const T* faces, const int32_t* table, const int32_t* blocks, 
       std::fill(phi_b + (b * K + slot) * kBlockCells, phi_b + (b * K + slot + 1) * kBlockCells, T(0));
       if (iterations == 0) continue;
       const T* fs = faces + b * pool * 2;
-      T* e = entries.get() + u * kBlockCells * kEntry;
+      T* e = entries + u * kBlockCells * kEntry;
       bool pushes = false;
       uint64_t bits = 0;
       for (uint64_t cand = lower_faces_massive(fs, slot, q.eps); cand; cand &= cand - 1) {
@@ -386,7 +419,7 @@ void pressure_impl(const T* faces, const int32_t* table, const int32_t* blocks, 
           const int64_t u = list[i], b = scene[u], slot = u - first[b];
           const T* ps = src + b * K * kBlockCells;
           T* pd = dst + (b * K + slot) * kBlockCells;
-          const T* e = entries.get() + u * kBlockCells * kEntry;
+          const T* e = entries + u * kBlockCells * kEntry;
           bool any = false;
           for (uint64_t bits = active[u]; bits; bits &= bits - 1) { // inactive cells keep phi = 0
             const int l = lowest_bit(bits);
@@ -460,20 +493,19 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> pressure_cpu(const at::Tensor& fa
   check_common("pressure", faces, "faces", dtype);
   check_common("pressure", target, "target", dtype);
   check_common("pressure", dt, "dt", dtype);
-  at::Tensor phi_a = at::empty({B, K, kBlockCells}, faces.options());
-  at::Tensor phi_b = at::empty({B, K, kBlockCells}, faces.options());
+  at::Tensor phi = at::empty({B, K, kBlockCells}, faces.options());
   at::Tensor field = at::empty({B, K, 3, kBlockCells}, faces.options());
   at::Tensor overflow = at::empty({B}, faces.options().dtype(at::kBool));
-  if (B == 0) return {phi_a, field, overflow};
+  if (B == 0) return {phi, field, overflow};
   const at::Tensor fc = faces.contiguous(), tc = table.contiguous(), bc = blocks.contiguous(), cc = count.contiguous();
   AT_DISPATCH_FLOATING_TYPES(dtype, "ams_torch_cpu::pressure", [&] {
     pressure_impl<scalar_t>(fc.const_data_ptr<scalar_t>(), tc.const_data_ptr<int32_t>(), bc.const_data_ptr<int32_t>(),
                             cc.const_data_ptr<int32_t>(), target.item<scalar_t>(), dt.item<scalar_t>(),
-                            phi_a.mutable_data_ptr<scalar_t>(), phi_b.mutable_data_ptr<scalar_t>(),
-                            field.mutable_data_ptr<scalar_t>(), overflow.mutable_data_ptr<bool>(), B, r, K, cell_size,
-                            iterations, omega, stiffness, pic, active_capacity);
+                            phi.mutable_data_ptr<scalar_t>(), field.mutable_data_ptr<scalar_t>(),
+                            overflow.mutable_data_ptr<bool>(), B, r, K, cell_size, iterations, omega, stiffness, pic,
+                            active_capacity);
   });
-  return {iterations % 2 == 0 ? phi_a : phi_b, field, overflow};
+  return {phi, field, overflow};
 }
 
 // G2P of particles [q0, q0 + n) of one scene (x, v, xo, vo, free_p: that scene's).
