@@ -251,7 +251,9 @@ class SDFGrid:
         """
         grid, coords, outside = self._prepare(points)
         out = F.grid_sample(grid._volume, coords, mode="bilinear", padding_mode="border", align_corners=True)
-        out = out.reshape(4, -1).transpose(0, 1).reshape(points.shape[:-1] + (4,))
+        # (P, 4) contiguous: the transposed view would make every op below (the norms above all)
+        # walk memory with a stride of P
+        out = out.reshape(4, -1).t().contiguous().reshape(points.shape[:-1] + (4,))
         dist_out = outside.norm(dim=-1)
         sigma = out[..., 0] + dist_out
         # the unit direction away from the box, zero inside it. Masked, not ``outside / max(|outside|,
