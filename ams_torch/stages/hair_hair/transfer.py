@@ -100,9 +100,11 @@ def face_corners(xl: torch.Tensor, origin: torch.Tensor, h: float, r: int, c: in
     zero = torch.zeros_like(f)
     w0 = torch.where(d == 0, one_f, torch.where(d == -1, f, zero))
     w1 = torch.where(d == 0, f, torch.where(d == 1, one_f, zero))
-    wa = torch.stack((w0, w1), -1)  # (B, P, 3, 2)
-    w = wa[..., 0, :, None, None] * wa[..., 1, None, :, None] * wa[..., 2, None, None, :]
-    return bc, w.reshape(g.shape[0], g.shape[1], 8)
+    # the 8 products (w_x w_y) w_z as rows along P (long vector loops; with the corners innermost
+    # every op would run over 2-element rows), then one transpose to (B, P, 8)
+    wa = torch.stack((w0, w1), -1).permute(2, 3, 0, 1).contiguous()  # (3, 2, B, P)
+    w = wa[0, :, None, None] * wa[1, None, :, None] * wa[2, None, None, :]  # (2, 2, 2, B, P)
+    return bc, w.reshape(8, g.shape[0], g.shape[1]).permute(1, 2, 0).contiguous()
 
 
 def face_stencil(xl: torch.Tensor, origin: torch.Tensor, h: float, r: int, c: int):
@@ -179,8 +181,9 @@ def g2p_torch(x: torch.Tensor, v: torch.Tensor, field: torch.Tensor, frame: torc
 
 def interpolate_change(flat: torch.Tensor, idx: torch.Tensor, w: torch.Tensor, vl_c: torch.Tensor, pic: float):
     """One component of a particle's G2P change ``I(field) − pic · wsum · v_rel``: flat (M,) face
-    values m/s, idx / w (B, P, 8) a stencil into it, vl_c (B, P) m/s. Returns (B, P) m/s."""
-    return (flat[idx] * w).sum(-1) - pic * w.sum(-1) * vl_c
+    values m/s, idx / w (B, P, 8) a stencil into it (idx int32 or int64), vl_c (B, P) m/s.
+    Returns (B, P) m/s."""
+    return (flat.index_select(0, idx.reshape(-1)).view(idx.shape) * w).sum(-1) - pic * w.sum(-1) * vl_c
 
 
 def apply_change(x: torch.Tensor, v: torch.Tensor, dvl: torch.Tensor, frame: torch.Tensor, free: torch.Tensor, dt):
