@@ -55,6 +55,60 @@ def _mesh_key(vertices: np.ndarray, faces: np.ndarray, resolution: int, padding:
     return h.hexdigest()[:32]
 
 
+def _mosaic_columns(shape) -> int:
+    """Tiles per row of :func:`_tiles` for a (1, C, nz, ny, nx) volume: about square, so the
+    mosaic's sides (and the rounding of coordinates normalised over them) stay small."""
+    nz, ny, nx = shape[2:]
+    return max(1, min(nz, math.ceil(math.sqrt(nz * (ny + 2) / (nx + 2)))))
+
+
+def _tiles(volume: torch.Tensor) -> torch.Tensor:
+    """(1, C, rows·(ny + 2), T·(nx + 2)) copy of a (1, C, nz, ny, nx) volume: its z-slices as a
+    mosaic, T (:func:`_mosaic_columns`) a row, slice k in tile row k // T and column k mod T, each
+    tile the slice with its outer rows and columns repeated on every side (so a sample near a
+    slice's edge, rounding included, never reads another slice: the "border" padding of the
+    volume); tiles past the last slice are zero and never read. Two bilinear samples of it and a
+    linear step in z are the volume's trilinear sample (:func:`_trilinear`)."""
+    _, c, nz, ny, nx = volume.shape
+    t = _mosaic_columns(volume.shape)
+    rows = -(-nz // t)
+    padded = F.pad(volume[0], (1, 1, 1, 1), mode="replicate")  # (C, nz, ny + 2, nx + 2)
+    padded = torch.cat((padded, padded.new_zeros(c, rows * t - nz, ny + 2, nx + 2)), 1)
+    return padded.reshape(c, rows, t, ny + 2, nx + 2).permute(0, 1, 3, 2, 4).reshape(
+        1, c, rows * (ny + 2), t * (nx + 2))
+
+
+def _trilinear(volume: torch.Tensor, tiles: Optional[torch.Tensor], coords: torch.Tensor) -> torch.Tensor:
+    """The trilinear sample (P, C) of a (1, C, nz, ny, nx) volume at grid_sample coordinates
+    coords (P, 3) in [−1, 1] (x, y, z; corners aligned): ``grid_sample(volume, coords)`` up to
+    rounding, as two bilinear samples of the z-slices around each point in the mosaic
+    :func:`_tiles` (``tiles``, or made here when None) and a linear step between them.
+    grid_sample's 2-D CPU kernel is vectorised and its 3-D one is not: 2-3 times faster at 32k
+    points (1 thread). Differentiable with respect to coords (the trilinear interpolant's
+    derivative; zero across z-slices, as the 3-D sample's)."""
+    if tiles is None:
+        tiles = _tiles(volume)
+    nz, ny, nx = volume.shape[2:]
+    t = _mosaic_columns(volume.shape)
+    height, width = tiles.shape[2], tiles.shape[3]
+    iz = (coords[:, 2] + 1) * (0.5 * (nz - 1))  # z index in [0, nz − 1]
+    z0 = torch.floor(iz.detach()).clamp(0, nz - 2)  # the lower slice (integer valued)
+    tz = iz - z0
+    # normalised mosaic coordinates of (x, y) in slice k's tile: (tile origin + 1 + index) · 2 / (side − 1) − 1
+    ax = (coords[:, 0] + 1) * ((nx - 1) / (width - 1))
+    ay = (coords[:, 1] + 1) * ((ny - 1) / (height - 1))
+    grid = []
+    for k in (z0, z0 + 1):
+        row = torch.floor(k / t)
+        col = k - row * t
+        gx = ax + (col * (2.0 * (nx + 2) / (width - 1)) + (2.0 / (width - 1) - 1.0))
+        gy = ay + (row * (2.0 * (ny + 2) / (height - 1)) + (2.0 / (height - 1) - 1.0))
+        grid.append(torch.stack((gx, gy), -1))
+    out = F.grid_sample(tiles, torch.stack(grid)[None], mode="bilinear", padding_mode="border",
+                        align_corners=True)  # (1, C, 2, P)
+    return torch.lerp(out[0, :, 0], out[0, :, 1], tz).t().contiguous()
+
+
 def _channels_last(volume: torch.Tensor) -> torch.Tensor:
     """(nz, ny, nx, 4) contiguous copy of a (1, 4, nz, ny, nx) volume: the layout of the native
     collision kernel, where one sample's σ and gradient share a cache line."""
@@ -90,6 +144,7 @@ class SDFGrid:
         grads = torch.gradient(values, spacing=self.spacing, edge_order=1)
         self._volume = torch.stack((values,) + tuple(grads), 0).permute(0, 3, 2, 1).contiguous()[None]
         self._volume_last = _channels_last(self._volume)
+        self._tiles = _tiles(self._volume)
 
     # -- construction ----------------------------------------------------------------------
     @staticmethod
@@ -213,6 +268,7 @@ class SDFGrid:
         out.upper = self.upper.to(device=device, dtype=dtype)
         out._volume = self._volume.to(device=device, dtype=dtype)
         out._volume_last = _channels_last(out._volume)
+        out._tiles = _tiles(out._volume)
         return out
 
     # -- sampling ----------------------------------------------------------------------
@@ -250,10 +306,8 @@ class SDFGrid:
         points) the normal falls back to +y.
         """
         grid, coords, outside = self._prepare(points)
-        out = F.grid_sample(grid._volume, coords, mode="bilinear", padding_mode="border", align_corners=True)
-        # (P, 4) contiguous: the transposed view would make every op below (the norms above all)
-        # walk memory with a stride of P
-        out = out.reshape(4, -1).t().contiguous().reshape(points.shape[:-1] + (4,))
+        out = _trilinear(grid._volume, getattr(grid, "_tiles", None), coords.reshape(-1, 3))
+        out = out.reshape(points.shape[:-1] + (4,))  # (..., 4) contiguous: σ and the grid gradient
         dist_out = outside.norm(dim=-1)
         sigma = out[..., 0] + dist_out
         # the unit direction away from the box, zero inside it. Masked, not ``outside / max(|outside|,
