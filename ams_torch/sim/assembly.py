@@ -32,6 +32,15 @@ def _pad_n(t: torch.Tensor, before: int, after: int) -> torch.Tensor:
     return F.pad(t, (0, 0, 0, 0, before, after))
 
 
+def _add_pair(diag: torch.Tensor, hk: torch.Tensor, k: int) -> None:
+    """In place: a pair term hk (..., S, N−k, 3, 3) on the diagonal blocks of both its ends, the
+    lower ends first (the values of ``diag + pad(hk, 0, k) + pad(hk, k, 0)`` without the padded
+    copies). diag: (..., S, N, 3, 3), a tensor of the assembly's own (never an input)."""
+    n = diag.shape[-3]
+    diag[..., : n - k, :, :] += hk
+    diag[..., k:, :, :] += hk
+
+
 def assemble_system(model: Model, coeffs: Coefficients, config: Config, x: torch.Tensor, v: torch.Tensor,
                     ghost: torch.Tensor, ghost_velocity: torch.Tensor, pin_velocity: torch.Tensor, h,
                     external_force: Optional[torch.Tensor] = None, sag_offset: Optional[torch.Tensor] = None):
@@ -59,13 +68,15 @@ def assemble_system(model: Model, coeffs: Coefficients, config: Config, x: torch
         if external_force is not None:
             force = force + external_force
         diag = (m + forces.drag_diagonal(coeffs.drag, h))[..., None, None] * eye
+        if diag.shape != x.shape + (3,):  # batched states: one diagonal per scene, added to in place below
+            diag = diag.expand(x.shape + (3,)).clone()
         offdiag = []
         with record_function("ams_torch.springs"):
             for k, kappa in zip((1, 2, 3), (coeffs.edge, coeffs.bend, coeffs.torsion)):
                 f, stiff = forces.spring_forces(x, model.rest_lengths[k - 1], kappa, k, config.geometric_stiffness)
                 force = force + f
                 hk = (h * h) * stiff  # (..., S, N-k, 3, 3)
-                diag = diag + _pad_n(hk, 0, k) + _pad_n(hk, k, 0)
+                _add_pair(diag, hk, k)
                 offdiag.append(_pad_n(-hk, k, 0))
         rhs = m[..., None] * v
         with record_function("ams_torch.biphasic"):
@@ -106,7 +117,7 @@ def _angular_terms(coeffs: Coefficients, config: Config, x, v, ghost, ghost_velo
     if config.implicit_angular:
         ht = (h * h) * tangent
         if config.angular_reaction:
-            diag = diag + _pad_n(ht, 0, 1) + _pad_n(ht, 1, 0)
+            _add_pair(diag, ht, 1)
             offdiag = [offdiag[0] - _pad_n(ht, 1, 0)] + offdiag[1:]
         else:
             diag = diag + _pad_n(ht, 1, 0)

@@ -259,14 +259,21 @@ def _listed_neighbours(cell: torch.Tensor, nbr: torch.Tensor, k: int) -> torch.T
     return torch.stack(out, -1)
 
 
-def _take(values: torch.Tensor, index: torch.Tensor, size: int) -> torch.Tensor:
-    """values (size, ...) at index, zero where index == size (the "none" index)."""
-    got = values.index_select(0, index.clamp(max=size - 1))
-    keep = (index < size).reshape((-1,) + (1,) * (got.dim() - 1))
-    return torch.where(keep, got, torch.zeros_like(got))
+def _faces_by_component(faces: torch.Tensor) -> torch.Tensor:
+    """(3, 2, B·K·64): per component the pool's face masses and momenta as contiguous rows (the
+    cell terms gather them by 1-D index_select)."""
+    return faces.permute(2, 4, 0, 1, 3).reshape(3, 2, -1)
 
 
-def _solve(faces, nbr, active, rho0, dt, h: float, cap: int, iterations: int, omega: float, stiffness: float):
+def _take_faces(comp: torch.Tensor, index: torch.Tensor, size: int) -> torch.Tensor:
+    """comp (2, size) one component's face masses and momenta at index (L,); zeros where
+    index == size (the "none" index). Returns (2, L)."""
+    got = comp.index_select(1, index.clamp(max=size - 1))
+    return torch.where(index < size, got, torch.zeros_like(got))
+
+
+def _solve(faces, nbr, active, rho0, dt, h: float, cap: int, iterations: int, omega: float, stiffness: float,
+           comps: Optional[torch.Tensor] = None):
     """φ (B·K·64,) on the pool, the listed cells (B·cap,) and their neighbours (B·cap, 6) (global
     pool cells; B·K·64 = none): the projected Jacobi sweeps of pressure.py, run on a list of each
     scene's active cells (static capacity ``cap``, in cell order; cells beyond it are left out,
@@ -288,14 +295,14 @@ def _solve(faces, nbr, active, rho0, dt, h: float, cap: int, iterations: int, om
     none = b * cells
     g = torch.where(listed < cells, listed + scene * cells, none).reshape(-1)  # (B·cap,) global pool cells
     near_g = torch.where(near < cells, near + scene[..., None] * cells, none).reshape(-1, 6)
+    comps = _faces_by_component(faces) if comps is None else comps
     m_lo, v_lo, lo, m_hi, v_hi, hi = [], [], [], [], [], []
     for c in range(3):
-        flat = faces[:, :, c].reshape(-1, 2)  # (B·K·64, 2): this component's faces
         for out_m, out_v, out_i, at in ((m_lo, v_lo, lo, g), (m_hi, v_hi, hi, near_g[:, 2 * c + 1])):
-            mm = _take(flat, at, none)
-            out_m.append(mm[:, 0])
-            out_v.append(_velocity(mm[:, 0], mm[:, 1]))
-            out_i.append(_inverse_density(mm[:, 0], rho0 * (ACTIVE_FACE_DENSITY * h3), h3))
+            mm = _take_faces(comps[c], at, none)
+            out_m.append(mm[0])
+            out_v.append(_velocity(mm[0], mm[1]))
+            out_i.append(_inverse_density(mm[0], rho0 * (ACTIVE_FACE_DENSITY * h3), h3))
     total = None
     for c in range(3):
         pair = 0.5 * (m_lo[c] + m_hi[c])
@@ -368,7 +375,8 @@ def pressure_sparse(faces: torch.Tensor, table: torch.Tensor, blocks: torch.Tens
     if iterations == 0:
         return faces.new_zeros(b, k, BLOCK_CELLS), field, blocks_over
     active = _active(faces, nbr, eps)
-    phi, g, near_g = _solve(faces, nbr, active, rho0, dt, h, cap, iterations, omega, stiffness)
+    comps = _faces_by_component(faces)
+    phi, g, near_g = _solve(faces, nbr, active, rho0, dt, h, cap, iterations, omega, stiffness, comps)
     none = b * k * BLOCK_CELLS
     listed = torch.zeros(none + 1, dtype=torch.bool, device=faces.device)
     listed[g] = True  # slot `none`: unused list slots
@@ -376,16 +384,15 @@ def pressure_sparse(faces: torch.Tensor, table: torch.Tensor, blocks: torch.Tens
     phi_pad = torch.cat((phi, phi.new_zeros(1)))
     out = torch.cat((field.permute(2, 0, 1, 3).reshape(3, -1), field.new_zeros(3, 1)), 1)  # (3, none + 1)
     for c in range(3):
-        flat = faces[:, :, c].reshape(-1, 2)
         below = near_g[:, 2 * c]  # the cell under each listed cell's lower c-face
         above = near_g[:, 2 * c + 1]  # the cell over its upper c-face (whose lower c-face that is)
         # each face once: a listed cell's lower face, and its upper face unless the cell above is
         # listed too (then it is that cell's lower face)
         for face, hi, lo, use in ((g, g, below, g < none), (above, above, g, (above < none) & ~listed[above])):
-            mm = _take(flat, face, none)
+            mm = _take_faces(comps[c], face, none)
             grad = (phi_pad[hi] - phi_pad[lo]) / h
-            du = -(grad * _inverse_density(mm[:, 0], eps, h3))
-            value = pic * _velocity(mm[:, 0], mm[:, 1]) + du
+            du = -(grad * _inverse_density(mm[0], eps, h3))
+            value = pic * _velocity(mm[0], mm[1]) + du
             out[c].index_put_((torch.where(use, face, none),), value)
     field = out[:, :-1].reshape(3, b, k, BLOCK_CELLS).permute(1, 2, 0, 3)
     return phi.reshape(b, k, BLOCK_CELLS), field, blocks_over | (active.reshape(b, -1).sum(1) > cap)
