@@ -79,8 +79,8 @@ def _tiles(volume: torch.Tensor) -> torch.Tensor:
 
 
 def _trilinear(volume: torch.Tensor, tiles: Optional[torch.Tensor], coords: torch.Tensor) -> torch.Tensor:
-    """The trilinear sample (P, C) of a (1, C, nz, ny, nx) volume at grid_sample coordinates
-    coords (P, 3) in [−1, 1] (x, y, z; corners aligned): ``grid_sample(volume, coords)`` up to
+    """The trilinear sample (C, P) of a (1, C, nz, ny, nx) volume at grid_sample coordinates
+    coords (3, P) in [−1, 1] (rows x, y, z; corners aligned): ``grid_sample(volume, coords)`` up to
     rounding, as two bilinear samples of the z-slices around each point in the mosaic
     :func:`_tiles` (``tiles``, or made here when None) and a linear step between them.
     grid_sample's 2-D CPU kernel is vectorised and its 3-D one is not: 2-3 times faster at 32k
@@ -91,12 +91,12 @@ def _trilinear(volume: torch.Tensor, tiles: Optional[torch.Tensor], coords: torc
     nz, ny, nx = volume.shape[2:]
     t = _mosaic_columns(volume.shape)
     height, width = tiles.shape[2], tiles.shape[3]
-    iz = (coords[:, 2] + 1) * (0.5 * (nz - 1))  # z index in [0, nz − 1]
+    iz = (coords[2] + 1) * (0.5 * (nz - 1))  # z index in [0, nz − 1]
     z0 = torch.floor(iz.detach()).clamp(0, nz - 2)  # the lower slice (integer valued)
     tz = iz - z0
     # normalised mosaic coordinates of (x, y) in slice k's tile: (tile origin + 1 + index) · 2 / (side − 1) − 1
-    ax = (coords[:, 0] + 1) * ((nx - 1) / (width - 1))
-    ay = (coords[:, 1] + 1) * ((ny - 1) / (height - 1))
+    ax = (coords[0] + 1) * ((nx - 1) / (width - 1))
+    ay = (coords[1] + 1) * ((ny - 1) / (height - 1))
     grid = []
     for k in (z0, z0 + 1):
         row = torch.floor(k / t)
@@ -106,7 +106,15 @@ def _trilinear(volume: torch.Tensor, tiles: Optional[torch.Tensor], coords: torc
         grid.append(torch.stack((gx, gy), -1))
     out = F.grid_sample(tiles, torch.stack(grid)[None], mode="bilinear", padding_mode="border",
                         align_corners=True)  # (1, C, 2, P)
-    return torch.lerp(out[0, :, 0], out[0, :, 1], tz).t().contiguous()
+    return torch.lerp(out[0, :, 0], out[0, :, 1], tz)
+
+
+def _safe_length(rows: torch.Tensor) -> torch.Tensor:
+    """(P,) lengths of the columns of rows (3, P), 0 for a zero column with a zero (not NaN)
+    gradient there, as ``norm``'s."""
+    sq = (rows * rows).sum(0)
+    nonzero = sq > 0
+    return torch.where(nonzero, torch.sqrt(torch.where(nonzero, sq, torch.ones_like(sq))), torch.zeros_like(sq))
 
 
 def _channels_last(volume: torch.Tensor) -> torch.Tensor:
@@ -303,23 +311,38 @@ class SDFGrid:
 
         The normal is the normalised, trilinearly interpolated grid gradient (outside the box:
         plus the unit direction away from the box). Where the gradient vanishes (deep medial
-        points) the normal falls back to +y.
+        points) the normal falls back to +y. Computed on rows (:meth:`distance_and_normal_rows`).
         """
-        grid, coords, outside = self._prepare(points)
-        out = _trilinear(grid._volume, getattr(grid, "_tiles", None), coords.reshape(-1, 3))
-        out = out.reshape(points.shape[:-1] + (4,))  # (..., 4) contiguous: σ and the grid gradient
-        dist_out = outside.norm(dim=-1)
-        sigma = out[..., 0] + dist_out
+        if points.shape[-1] != 3:
+            raise ValueError(f"points must be (..., 3), got {tuple(points.shape)}")
+        sigma, normal = self.distance_and_normal_rows(points.reshape(-1, 3).t().contiguous())
+        return sigma.reshape(points.shape[:-1]), normal.t().reshape(points.shape)
+
+    def distance_and_normal_rows(self, rows: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`distance_and_normal` of points given as rows (3, P) metres (x, y, z): σ (P,)
+        metres and the unit outward normals as rows (3, P). Every op runs along P (the same values
+        on points (P, 3) would make each op walk rows of 3)."""
+        grid = self
+        if rows.device != self.device or rows.dtype != self.dtype:
+            grid = self.to(rows.device, rows.dtype)
+        lo, hi = grid.origin[:, None], grid.upper[:, None]
+        scale = 2.0 / (hi - lo)  # metres → [−1, 1]; grid_sample order (x, y, z) ↔ (W, H, D)
+        raw = torch.addcmul(-1.0 - lo * scale, rows, scale)
+        coords = raw.clamp(-1.0, 1.0)
+        outside = (raw - coords) / scale  # (3, P) m from the box, zero inside it
+        out = _trilinear(grid._volume, getattr(grid, "_tiles", None), coords)  # (4, P): σ and the grid gradient
+        dist_out = _safe_length(outside)
+        sigma = out[0] + dist_out
         # the unit direction away from the box, zero inside it. Masked, not ``outside / max(|outside|,
         # 1e-30)``: inside the box that form back-propagates 1e30 × (an exact zero), and the two huge
         # opposite terms of ``raw − coords`` cancel the grid gradient's own contribution (the normal's
         # autograd gradient was exactly zero inside the box; tests/test_grad_colliders.py)
         away = dist_out > 0
         safe = torch.where(away, dist_out, torch.ones_like(dist_out))
-        grad = out[..., 1:] + torch.where(away[..., None], outside / safe[..., None], torch.zeros_like(outside))
-        norm = grad.norm(dim=-1, keepdim=True)
-        up = torch.zeros_like(grad)
-        up[..., 1] = 1
+        grad = out[1:] + torch.where(away, outside / safe, torch.zeros_like(outside))
+        norm = _safe_length(grad)
+        up = torch.zeros_like(grad[:, :1])
+        up[1] = 1
         normal = torch.where(norm > 1e-12, grad / norm.clamp_min(1e-12), up)
         return sigma, normal
 
