@@ -77,7 +77,7 @@ def assemble_system(model: Model, coeffs: Coefficients, config: Config, x: torch
                 force = force + f
                 hk = (h * h) * stiff  # (..., S, N-k, 3, 3)
                 _add_pair(diag, hk, k)
-                offdiag.append(_pad_n(-hk, k, 0))
+                offdiag.append(-hk)  # A[i, i−k] for i ≥ k (rows below k are zero)
         rhs = m[..., None] * v
         with record_function("ams_torch.biphasic"):
             force, diag, rhs = _integrity_terms(model, coeffs, config, x, ghost, ghost_velocity, h, sag_offset,
@@ -118,7 +118,7 @@ def _angular_terms(coeffs: Coefficients, config: Config, x, v, ghost, ghost_velo
         ht = (h * h) * tangent
         if config.angular_reaction:
             _add_pair(diag, ht, 1)
-            offdiag = [offdiag[0] - _pad_n(ht, 1, 0)] + offdiag[1:]
+            offdiag = [offdiag[0] - ht] + offdiag[1:]
         else:
             diag = diag + _pad_n(ht, 1, 0)
         rhs = rhs + forces.angular_ghost_velocity_term(ht, ghost_velocity, v, config.angular_reaction)
@@ -128,7 +128,11 @@ def _angular_terms(coeffs: Coefficients, config: Config, x, v, ghost, ghost_velo
 def _pinned_rows(model: Model, m, x, pin_velocity, h, eye, force, diag, offdiag, rhs):
     """Add the forces to the right-hand side, stack the band and impose the pinned rows."""
     rhs = rhs + h * force
-    blocks = torch.stack([diag] + [o.expand_as(diag) for o in offdiag], -3)
+    # the band: blocks[..., i, 0] = diag, blocks[..., i, k] = offdiag[k − 1][..., i − k] for i ≥ k, else 0
+    blocks = diag.new_zeros(diag.shape[:-2] + (4, 3, 3))
+    blocks[..., 0, :, :] = diag
+    for k, o in enumerate(offdiag, 1):
+        blocks[..., k:, k, :, :] = o
     if not model.has_pinned:
         return blocks, rhs
     pinned = model.pinned  # (S, N)
@@ -142,7 +146,7 @@ def _pinned_rows(model: Model, m, x, pin_velocity, h, eye, force, diag, offdiag,
         shifted = F.pad(free, (k, 0), value=False)[..., :-k]
         keep.append(free & shifted)
     keep = torch.stack(keep, -1)[..., None, None].to(x.dtype)  # (S, N, 4, 1, 1)
-    pin_diag = F.pad((m[..., None, None] * eye)[..., None, :, :], (0, 0, 0, 0, 0, 3))  # (S, N, 4, 3, 3), k = 0 set
-    blocks = blocks * keep + pin_diag * pinned[..., None, None, None].to(x.dtype)
+    blocks = blocks * keep
+    blocks[..., 0, :, :] += (m[..., None, None] * eye) * pinned[..., None, None].to(x.dtype)  # m I on pinned rows
     rhs = torch.where(pinned[..., None], m[..., None] * pin_velocity, rhs)
     return blocks, rhs
