@@ -97,14 +97,12 @@ def _trilinear(volume: torch.Tensor, tiles: Optional[torch.Tensor], coords: torc
     # normalised mosaic coordinates of (x, y) in slice k's tile: (tile origin + 1 + index) · 2 / (side − 1) − 1
     ax = (coords[0] + 1) * ((nx - 1) / (width - 1))
     ay = (coords[1] + 1) * ((ny - 1) / (height - 1))
-    grid = []
-    for k in (z0, z0 + 1):
-        row = torch.floor(k / t)
-        col = k - row * t
-        gx = ax + (col * (2.0 * (nx + 2) / (width - 1)) + (2.0 / (width - 1) - 1.0))
-        gy = ay + (row * (2.0 * (ny + 2) / (height - 1)) + (2.0 / (height - 1) - 1.0))
-        grid.append(torch.stack((gx, gy), -1))
-    out = F.grid_sample(tiles, torch.stack(grid)[None], mode="bilinear", padding_mode="border",
+    k = torch.stack((z0, z0 + 1))  # (2, P): the two slices
+    row = torch.floor(k / t)
+    col = k - row * t
+    gx = ax + (col * (2.0 * (nx + 2) / (width - 1)) + (2.0 / (width - 1) - 1.0))
+    gy = ay + (row * (2.0 * (ny + 2) / (height - 1)) + (2.0 / (height - 1) - 1.0))
+    out = F.grid_sample(tiles, torch.stack((gx, gy), -1)[None], mode="bilinear", padding_mode="border",
                         align_corners=True)  # (1, C, 2, P)
     return torch.lerp(out[0, :, 0], out[0, :, 1], tz)
 
@@ -114,7 +112,7 @@ def _safe_length(rows: torch.Tensor) -> torch.Tensor:
     gradient there, as ``norm``'s."""
     sq = (rows * rows).sum(0)
     nonzero = sq > 0
-    return torch.where(nonzero, torch.sqrt(torch.where(nonzero, sq, torch.ones_like(sq))), torch.zeros_like(sq))
+    return torch.where(nonzero, torch.sqrt(torch.where(nonzero, sq, 1.0)), 0.0)
 
 
 def _channels_last(volume: torch.Tensor) -> torch.Tensor:
@@ -338,8 +336,7 @@ class SDFGrid:
         # opposite terms of ``raw − coords`` cancel the grid gradient's own contribution (the normal's
         # autograd gradient was exactly zero inside the box; tests/test_grad_colliders.py)
         away = dist_out > 0
-        safe = torch.where(away, dist_out, torch.ones_like(dist_out))
-        grad = out[1:] + torch.where(away, outside / safe, torch.zeros_like(outside))
+        grad = out[1:] + torch.where(away, outside / torch.where(away, dist_out, 1.0), 0.0)
         norm = _safe_length(grad)
         up = torch.zeros_like(grad[:, :1])
         up[1] = 1

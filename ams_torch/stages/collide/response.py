@@ -50,7 +50,7 @@ def _length(t: torch.Tensor, dim: int) -> torch.Tensor:
         return t.norm(dim=-1)
     sq = (t * t).sum(dim)
     nonzero = sq > 0
-    return torch.where(nonzero, torch.sqrt(torch.where(nonzero, sq, torch.ones_like(sq))), torch.zeros_like(sq))
+    return torch.where(nonzero, torch.sqrt(torch.where(nonzero, sq, 1.0)), 0.0)
 
 
 def contact_response(v: torch.Tensor, vc: torch.Tensor, n: torch.Tensor, friction, dim: int = -1) -> torch.Tensor:

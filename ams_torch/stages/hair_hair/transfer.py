@@ -94,7 +94,8 @@ def face_corners(xl: torch.Tensor, origin: torch.Tensor, h: float, r: int, c: in
     base = torch.floor(g)
     f = g - base
     i0 = base.clamp(-2, max(dims) + 1).long()  # far outside: any index with zero weights
-    bc = torch.stack([i0[..., a].clamp(0, dims[a] - 2) for a in range(3)], -1)  # (B, P, 3)
+    # (B, P, 3), a view of rows (3, B, P)
+    bc = torch.stack([i0[..., a].clamp(0, dims[a] - 2) for a in range(3)]).permute(1, 2, 0)
     d = i0 - bc  # 0 inside; −1 / 1 half outside; else fully outside
     one_f = 1 - f
     zero = torch.zeros_like(f)
@@ -102,7 +103,7 @@ def face_corners(xl: torch.Tensor, origin: torch.Tensor, h: float, r: int, c: in
     w1 = torch.where(d == 0, f, torch.where(d == 1, one_f, zero))
     # the 8 products (w_x w_y) w_z as rows along P (long vector loops; with the corners innermost
     # every op would run over 2-element rows), then one transpose to (B, P, 8)
-    wa = torch.stack((w0, w1), -1).permute(2, 3, 0, 1).contiguous()  # (3, 2, B, P)
+    wa = torch.stack((w0.permute(2, 0, 1), w1.permute(2, 0, 1)), 1)  # (3, 2, B, P)
     w = wa[0, :, None, None] * wa[1, None, :, None] * wa[2, None, None, :]  # (2, 2, 2, B, P)
     return bc, w.reshape(8, g.shape[0], g.shape[1]).permute(1, 2, 0).contiguous()
 
