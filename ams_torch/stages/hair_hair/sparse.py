@@ -246,12 +246,13 @@ def _listed_neighbours(cell: torch.Tensor, nbr: torch.Tensor, k: int) -> torch.T
     neighbour slots."""
     none = k * BLOCK_CELLS
     scene = torch.arange(cell.shape[0], device=cell.device)[:, None]
-    slot, loc = cell // BLOCK_CELLS, cell % BLOCK_CELLS
+    slot, loc = cell >> (3 * _SHIFT), cell & (BLOCK_CELLS - 1)  # cell ≥ 0: // 64 and % 64
     safe = slot.clamp(0, k - 1)
+    coords = [(loc >> (a * _SHIFT)) & (BLOCK - 1) for a in range(3)]  # along z, y, x (strides 1, 4, 16)
     out = []
     for d in range(6):
         stride, step = _STRIDES[d // 2], (1 if d % 2 else -1)
-        coord = (loc // stride) % BLOCK + step
+        coord = coords[2 - d // 2] + step  # (loc // stride) % BLOCK + step
         leave = (coord < 0) | (coord >= BLOCK)
         to = torch.where(leave, nbr[scene, safe, d], slot)
         local = loc + step * stride - torch.where(leave, step * BLOCK * stride, 0)
