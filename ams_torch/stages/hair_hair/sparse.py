@@ -43,7 +43,7 @@ from typing import Optional
 import torch
 
 from ams_torch.stages.hair_hair.pressure import ACTIVE_FACE_DENSITY
-from ams_torch.stages.hair_hair.transfer import apply_change, face_corners, interpolate_change, to_head
+from ams_torch.stages.hair_hair.transfer import apply_change, face_corner_rows, interpolate_change, to_head
 
 __all__ = ["BLOCK", "BLOCK_CELLS", "blocks_per_axis", "block_layout", "pool_stencil", "pool_neighbours",
            "p2g_sparse", "pressure_sparse", "g2p_sparse", "pool_density", "active_cells", "densify"]
@@ -99,29 +99,30 @@ def pool_stencil(xl: torch.Tensor, origin: torch.Tensor, h: float, r: int, c: in
                  capacity: int):
     """The trilinear c-face stencil of :func:`~.transfer.face_corners` in the pool.
 
-    xl: (B, P, 3) m; table: (B, nb³) int32. Returns flat indices (B, P, 8) into a (B, K, 3, 64)
-    pool followed by one sentinel (index B·K·3·64, for corners whose block has no slot), int32
-    (int64 for a pool of 2³¹ entries or more), and the weights (B, P, 8).
+    xl: (B, P, 3) m; table: (B, nb³) int32. Returns, as rows (8, B, P) (corner 4i + 2j + k of
+    each particle), the flat indices into a (B, K, 3, 64) pool followed by one sentinel (index
+    B·K·3·64, for corners whose block has no slot), int32 (int64 for a pool of 2³¹ entries or
+    more), and the weights.
     """
-    bc, w = face_corners(xl, origin, h, r, c)
-    b, p = bc.shape[:2]
+    lower, w = face_corner_rows(xl, origin, h, r, c)
+    b, p = lower.shape[1:]
     nb = blocks_per_axis(r)
     none = b * capacity * 3 * BLOCK_CELLS  # the sentinel
-    # integer work in int32 where every index fits (int64 products do not vectorise), as rows
-    # along P: per axis the corners' two face indices (lower, lower + 1) ≥ 0, their block and
-    # place in it by shifts, then the 8 corners (4i + 2j + k) by broadcasting, transposed once
+    # integer work in int32 where every index fits (int64 products do not vectorise): per axis
+    # the corners' two face indices (lower, lower + 1) ≥ 0, their block and place in it by
+    # shifts, then the 8 corners by broadcasting
     it = torch.int32 if max(none, b * nb ** 3) < 2 ** 31 else torch.int64
-    lower = bc.permute(2, 0, 1).to(it, memory_format=torch.contiguous_format)  # (3, B, P)
+    lower = lower.to(it)  # (3, B, P)
     q = torch.stack((lower, lower + 1), 1)  # (3, 2, B, P)
     blk, loc = q >> _SHIFT, q & (BLOCK - 1)
-    scene = torch.arange(b, device=bc.device, dtype=it)[:, None]  # (B, 1)
+    scene = torch.arange(b, device=xl.device, dtype=it)[:, None]  # (B, 1)
     bid = ((blk[0, :, None] * nb + blk[1, None, :]) * nb)[:, :, None] + (blk[2] + scene * nb ** 3)[None, None]
     slot = table.reshape(-1).index_select(0, bid.reshape(-1)).reshape(8, b, p).to(it)
     # flat index ((scene K + slot) 3 + c) 64 + local
     lz = loc[2] + (scene * (capacity * 3 * BLOCK_CELLS) + c * BLOCK_CELLS)  # (2, B, P)
     local = ((loc[0, :, None] * BLOCK + loc[1, None, :]) * BLOCK)[:, :, None] + lz[None, None]
     idx = torch.where(slot >= 0, torch.add(local.reshape(8, b, p), slot, alpha=3 * BLOCK_CELLS), none)
-    return idx.permute(1, 2, 0).contiguous(), w
+    return idx, w
 
 
 def p2g_sparse(x: torch.Tensor, v: torch.Tensor, m: torch.Tensor, frame: torch.Tensor, origin: torch.Tensor,
@@ -144,9 +145,9 @@ def p2g_sparse(x: torch.Tensor, v: torch.Tensor, m: torch.Tensor, frame: torch.T
         ic, wc = pool_stencil(xl, origin, cell_size, resolution, c, table, capacity)
         if stencils is not None:
             stencils.append((ic, wc))
-        flat = ic.reshape(-1)
-        mass.index_add_(0, flat, (wc * m[..., None]).reshape(-1))
-        mom.index_add_(0, flat, (wc * (m * vl[..., c])[..., None]).reshape(-1))
+        flat = ic.reshape(-1)  # corner-major: the sums' order (rounding) is the corners', then the particles'
+        mass.index_add_(0, flat, (wc * m).reshape(-1))
+        mom.index_add_(0, flat, (wc * (m * vl[..., c])).reshape(-1))
     faces = torch.stack((mass[:size], mom[:size]), -1)
     return faces.reshape(b, capacity, 3, BLOCK_CELLS, 2), table, blocks, count
 
@@ -411,7 +412,7 @@ def g2p_sparse(x: torch.Tensor, v: torch.Tensor, field: torch.Tensor, table: tor
     dvl = []
     for c in range(3):
         idx, w = stencils[c] if stencils is not None else pool_stencil(xl, origin, cell_size, resolution, c, table, k)
-        dvl.append(interpolate_change(flat, idx, w, vl[..., c], pic))
+        dvl.append(interpolate_change(flat, idx, w, vl[..., c], pic, corner_dim=0))
     return apply_change(x, v, torch.stack(dvl, -1), frame, free, dt)
 
 
