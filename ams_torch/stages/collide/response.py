@@ -142,6 +142,14 @@ def _rotate_rows(d: torch.Tensor, rot: torch.Tensor) -> torch.Tensor:
     return rot @ d
 
 
+def _cross_rows(a: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+    """a × r for a (B, 3) and rows r (B, 3, P): (B, 3, P), component by component (the cross
+    product's own formula, each term a long vector op)."""
+    a0, a1, a2 = (a[:, i, None] for i in range(3))
+    r0, r1, r2 = r.unbind(1)
+    return torch.stack((a1 * r2 - a2 * r1, a2 * r0 - a0 * r2, a0 * r1 - a1 * r0), 1)
+
+
 def _sample_rows(col: Collider, local: torch.Tensor) -> tuple:
     """σ (B, P) and the local normals as rows (B, 3, P) at local rows (B, 3, P)."""
     b, _, p = local.shape
@@ -166,7 +174,7 @@ def _response_rows(col: Collider, flat: tuple, xr: torch.Tensor, vr: torch.Tenso
         inside = inside & free_k
     n = _rotate_rows(n_local, rot)
     if lin is not None:
-        vc = lin[:, :, None] + torch.linalg.cross(ang[:, :, None].expand_as(xr), xr - trans[:, :, None], dim=1)
+        vc = lin[:, :, None] + _cross_rows(ang, xr - trans[:, :, None])
     else:
         vc = torch.zeros_like(vr)
     v_new = contact_response(vr, vc, n, col.friction if friction is None else friction, dim=1)
