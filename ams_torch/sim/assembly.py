@@ -67,9 +67,9 @@ def assemble_system(model: Model, coeffs: Coefficients, config: Config, x: torch
         force = forces.gravity_force(m, model.gravity).expand_as(x)
         if external_force is not None:
             force = force + external_force
-        diag = (m + forces.drag_diagonal(coeffs.drag, h))[..., None, None] * eye
-        if diag.shape != x.shape + (3,):  # batched states: one diagonal per scene, added to in place below
-            diag = diag.expand(x.shape + (3,)).clone()
+        # (m + Δt'γ) I, one block per particle (and scene), added to in place below
+        diag = x.new_zeros(x.shape + (3,))
+        diag.diagonal(dim1=-2, dim2=-1).copy_((m + forces.drag_diagonal(coeffs.drag, h))[..., None])
         offdiag = []
         with record_function("ams_torch.springs"):
             for k, kappa in zip((1, 2, 3), (coeffs.edge, coeffs.bend, coeffs.torsion)):
@@ -103,7 +103,8 @@ def _integrity_terms(model: Model, coeffs: Coefficients, config: Config, x, ghos
     if config.integrity_model == "hookean":
         kappa = coeffs.integrity
         hk = (h * h) * kappa
-        return (force + forces.integrity_force(x, ghost, kappa), diag + hk[..., None, None] * eye,
+        diag.diagonal(dim1=-2, dim2=-1).add_(hk[..., None])  # + κ_I Δt'² I, in place (diag is the assembly's)
+        return (force + forces.integrity_force(x, ghost, kappa), diag,
                 rhs + forces.integrity_ghost_velocity_term(hk, ghost_velocity))
     return force, diag, rhs
 
