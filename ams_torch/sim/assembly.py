@@ -32,6 +32,15 @@ def _pad_n(t: torch.Tensor, before: int, after: int) -> torch.Tensor:
     return F.pad(t, (0, 0, 0, 0, before, after))
 
 
+def _add_pair(diag: torch.Tensor, hk: torch.Tensor, k: int) -> None:
+    """In place: a pair term hk (..., S, N−k, 3, 3) on the diagonal blocks of both its ends, the
+    lower ends first (the values of ``diag + pad(hk, 0, k) + pad(hk, k, 0)`` without the padded
+    copies). diag: (..., S, N, 3, 3), a tensor of the assembly's own (never an input)."""
+    n = diag.shape[-3]
+    diag[..., : n - k, :, :] += hk
+    diag[..., k:, :, :] += hk
+
+
 def assemble_system(model: Model, coeffs: Coefficients, config: Config, x: torch.Tensor, v: torch.Tensor,
                     ghost: torch.Tensor, ghost_velocity: torch.Tensor, pin_velocity: torch.Tensor, h,
                     external_force: Optional[torch.Tensor] = None, sag_offset: Optional[torch.Tensor] = None):
@@ -58,15 +67,17 @@ def assemble_system(model: Model, coeffs: Coefficients, config: Config, x: torch
         force = forces.gravity_force(m, model.gravity).expand_as(x)
         if external_force is not None:
             force = force + external_force
-        diag = (m + forces.drag_diagonal(coeffs.drag, h))[..., None, None] * eye
+        # (m + Δt'γ) I, one block per particle (and scene), added to in place below
+        diag = x.new_zeros(x.shape + (3,))
+        diag.diagonal(dim1=-2, dim2=-1).copy_((m + forces.drag_diagonal(coeffs.drag, h))[..., None])
         offdiag = []
         with record_function("ams_torch.springs"):
             for k, kappa in zip((1, 2, 3), (coeffs.edge, coeffs.bend, coeffs.torsion)):
                 f, stiff = forces.spring_forces(x, model.rest_lengths[k - 1], kappa, k, config.geometric_stiffness)
                 force = force + f
                 hk = (h * h) * stiff  # (..., S, N-k, 3, 3)
-                diag = diag + _pad_n(hk, 0, k) + _pad_n(hk, k, 0)
-                offdiag.append(_pad_n(-hk, k, 0))
+                _add_pair(diag, hk, k)
+                offdiag.append(-hk)  # A[i, i−k] for i ≥ k (rows below k are zero)
         rhs = m[..., None] * v
         with record_function("ams_torch.biphasic"):
             force, diag, rhs = _integrity_terms(model, coeffs, config, x, ghost, ghost_velocity, h, sag_offset,
@@ -92,7 +103,8 @@ def _integrity_terms(model: Model, coeffs: Coefficients, config: Config, x, ghos
     if config.integrity_model == "hookean":
         kappa = coeffs.integrity
         hk = (h * h) * kappa
-        return (force + forces.integrity_force(x, ghost, kappa), diag + hk[..., None, None] * eye,
+        diag.diagonal(dim1=-2, dim2=-1).add_(hk[..., None])  # + κ_I Δt'² I, in place (diag is the assembly's)
+        return (force + forces.integrity_force(x, ghost, kappa), diag,
                 rhs + forces.integrity_ghost_velocity_term(hk, ghost_velocity))
     return force, diag, rhs
 
@@ -106,8 +118,8 @@ def _angular_terms(coeffs: Coefficients, config: Config, x, v, ghost, ghost_velo
     if config.implicit_angular:
         ht = (h * h) * tangent
         if config.angular_reaction:
-            diag = diag + _pad_n(ht, 0, 1) + _pad_n(ht, 1, 0)
-            offdiag = [offdiag[0] - _pad_n(ht, 1, 0)] + offdiag[1:]
+            _add_pair(diag, ht, 1)
+            offdiag = [offdiag[0] - ht] + offdiag[1:]
         else:
             diag = diag + _pad_n(ht, 1, 0)
         rhs = rhs + forces.angular_ghost_velocity_term(ht, ghost_velocity, v, config.angular_reaction)
@@ -117,7 +129,11 @@ def _angular_terms(coeffs: Coefficients, config: Config, x, v, ghost, ghost_velo
 def _pinned_rows(model: Model, m, x, pin_velocity, h, eye, force, diag, offdiag, rhs):
     """Add the forces to the right-hand side, stack the band and impose the pinned rows."""
     rhs = rhs + h * force
-    blocks = torch.stack([diag] + [o.expand_as(diag) for o in offdiag], -3)
+    # the band: blocks[..., i, 0] = diag, blocks[..., i, k] = offdiag[k − 1][..., i − k] for i ≥ k, else 0
+    blocks = diag.new_zeros(diag.shape[:-2] + (4, 3, 3))
+    blocks[..., 0, :, :] = diag
+    for k, o in enumerate(offdiag, 1):
+        blocks[..., k:, k, :, :] = o
     if not model.has_pinned:
         return blocks, rhs
     pinned = model.pinned  # (S, N)
@@ -131,7 +147,7 @@ def _pinned_rows(model: Model, m, x, pin_velocity, h, eye, force, diag, offdiag,
         shifted = F.pad(free, (k, 0), value=False)[..., :-k]
         keep.append(free & shifted)
     keep = torch.stack(keep, -1)[..., None, None].to(x.dtype)  # (S, N, 4, 1, 1)
-    pin_diag = F.pad((m[..., None, None] * eye)[..., None, :, :], (0, 0, 0, 0, 0, 3))  # (S, N, 4, 3, 3), k = 0 set
-    blocks = blocks * keep + pin_diag * pinned[..., None, None, None].to(x.dtype)
+    blocks = blocks * keep
+    blocks[..., 0, :, :] += (m[..., None, None] * eye) * pinned[..., None, None].to(x.dtype)  # m I on pinned rows
     rhs = torch.where(pinned[..., None], m[..., None] * pin_velocity, rhs)
     return blocks, rhs

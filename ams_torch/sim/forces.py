@@ -81,13 +81,16 @@ def spring_forces(x: torch.Tensor, rest_length: torch.Tensor, stiffness, k: int,
     kappa_pair = torch.as_tensor(stiffness, dtype=x.dtype, device=x.device)  # scalar, (S,1) or (S,N-k)
     f_pair = (kappa_pair * (length - rest_length))[..., None] * unit  # on the lower particle i
     force = _pad_pairs(f_pair, k, front=True) - _pad_pairs(f_pair, k, front=False)
-    dd = unit[..., :, None] * unit[..., None, :]
+    # the 3×3 blocks as rows (3, 3, ..., S, N−k): every op runs along the pairs (over 3×3 blocks
+    # each op would walk rows of 3), the same products and sums; one transpose at the end
+    rows = unit.movedim(-1, 0).contiguous()  # (3, ..., S, N−k)
+    dd = rows[:, None] * rows[None, :]
     if geometric:
-        g = geometric_stiffness_factor(length, rest_length)[..., None, None]
-        eye = torch.eye(3, dtype=x.dtype, device=x.device)
+        g = geometric_stiffness_factor(length, rest_length)
+        eye = torch.eye(3, dtype=x.dtype, device=x.device).reshape((3, 3) + (1,) * (rows.dim() - 1))
         dd = dd + g * (eye - dd)
-    block = kappa_pair[..., None, None] * dd
-    return force, block
+    block = kappa_pair * dd
+    return force, block.movedim((0, 1), (-2, -1)).contiguous()
 
 
 #: relative stretch below which a spring has no geometric stiffness: follow-the-leader leaves edges at
@@ -154,10 +157,12 @@ def angular_force(x: torch.Tensor, ghost: torch.Tensor, stiffness, reaction: boo
         force = force - F.pad(f, (0, 0, 0, 1))
     inv_len = torch.where(e_len > 0, 1.0 / torch.where(e_len > 0, e_len, torch.ones_like(e_len)),
                           torch.zeros_like(e_len))
-    eye = torch.eye(3, dtype=x.dtype, device=x.device)
-    proj = eye - e_hat[..., :, None] * e_hat[..., None, :]
-    tangent = (kappa * inv_len)[..., None, None] * proj
-    return force, tangent
+    # as rows (3, 3, ..., S, N−1) (see spring_forces), one transpose at the end
+    rows = e_hat.movedim(-1, 0).contiguous()
+    eye = torch.eye(3, dtype=x.dtype, device=x.device).reshape((3, 3) + (1,) * (rows.dim() - 1))
+    proj = eye - rows[:, None] * rows[None, :]
+    tangent = (kappa * inv_len) * proj
+    return force, tangent.movedim((0, 1), (-2, -1)).contiguous()
 
 
 def gravity_force(mass: torch.Tensor, gravity: torch.Tensor) -> torch.Tensor:

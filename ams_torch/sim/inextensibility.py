@@ -12,7 +12,6 @@ from typing import Optional
 
 import torch
 
-from ams_torch.sim.forces import safe_normalize
 
 __all__ = ["follow_the_leader", "max_stretch"]
 
@@ -41,23 +40,35 @@ def follow_the_leader(x: torch.Tensor, v: torch.Tensor, edge_rest_length: torch.
     """
     n = x.shape[-2]
     pinned = pinned if pinned.dim() == 2 else pinned.expand(x.shape[-3], n)
+    # the walk is sequential (N − 1 steps of small ops), so each step does the least: safe_normalize
+    # inlined (its zero direction replaced by the fallback in the same where), the rest lengths and
+    # masks sliced once, the corrections taken after the walk
+    rests = edge_rest_length[..., None]  # (S, N − 1, 1)
+    held = pinned[..., None]  # (S, N, 1)
+    one = torch.ones_like(x[..., 0, 0])
     pts = [x[..., 0, :]]
-    corr = [torch.zeros_like(x[..., 0, :])]
     for i in range(1, n):
         xi = x[..., i, :]
-        d, length = safe_normalize(xi - pts[i - 1])
+        d = xi - pts[i - 1]
+        sq = (d * d).sum(-1)
+        nonzero = sq > 1e-20  # safe_normalize's test
+        length = torch.sqrt(torch.where(nonzero, sq, one))
+        unit = d / length[..., None]
         if fallback_dir is not None:
-            d = torch.where((length > 0)[..., None], d, fallback_dir[..., i - 1, :])
-        rest = edge_rest_length[..., i - 1]
+            unit = torch.where(nonzero[..., None], unit, fallback_dir[..., i - 1, :])
+        else:
+            unit = torch.where(nonzero[..., None], unit, torch.zeros_like(unit))
+        rest = rests[..., i - 1, :]
         if limit:
+            length = torch.where(nonzero, length, torch.zeros_like(length))[..., None]
             rest = torch.minimum(torch.maximum(length, (1 - limit) * rest), (1 + limit) * rest)
-        led = pts[i - 1] + rest[..., None] * d
-        new = torch.where(pinned[:, i, None], xi, led)
+        new = torch.where(held[:, i], xi, pts[i - 1] + rest * unit)
         pts.append(new)
-        corr.append(new - xi)
     x_new = torch.stack(pts, -2)
-    c = torch.stack(corr, -2)
-    c_next = torch.cat((c[..., 1:, :], torch.zeros_like(c[..., :1, :])), -2)
+    # the corrections new − x (exactly 0 at the root, which never moves)
+    zero = torch.zeros_like(x[..., :1, :])
+    c = torch.cat((zero, x_new[..., 1:, :] - x[..., 1:, :]), -2)
+    c_next = torch.cat((c[..., 1:, :], zero), -2)
     free = (~pinned).to(x.dtype)[..., None]
     v_new = v + free * (c - damping * c_next) / dt
     return x_new, v_new

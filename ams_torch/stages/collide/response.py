@@ -25,17 +25,6 @@ def _world_to_local(xf: torch.Tensor, rot: torch.Tensor, trans: torch.Tensor) ->
     return torch.baddbmm(offset, xf, rot)
 
 
-def _rotate(d: torch.Tensor, rot: torch.Tensor) -> torch.Tensor:
-    """R d for rows d (B, K, 3) with R (B, 3, 3)."""
-    if rot.shape[0] == 1:
-        return (d[0] @ rot[0].T)[None]
-    return d @ rot.transpose(-1, -2)
-
-
-def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    return (a * b).sum(-1)
-
-
 def collider_distances(x: torch.Tensor, colliders: Sequence[Collider], world_poses: Sequence[Optional[Pose]]
                        ) -> torch.Tensor:
     """Signed distance of every particle to every collider (metres, negative inside).
@@ -53,26 +42,38 @@ def collider_distances(x: torch.Tensor, colliders: Sequence[Collider], world_pos
     return torch.stack(out)
 
 
-def contact_response(v: torch.Tensor, vc: torch.Tensor, n: torch.Tensor, friction) -> torch.Tensor:
+def _length(t: torch.Tensor, dim: int) -> torch.Tensor:
+    """|t| along ``dim`` (of size 3). Along the last dim: ``norm``; along another (rows, each
+    component contiguous along the particles): the square root of the sum of squares, with
+    ``norm``'s zero gradient at zero (never NaN)."""
+    if dim == -1:
+        return t.norm(dim=-1)
+    sq = (t * t).sum(dim)
+    nonzero = sq > 0
+    return torch.where(nonzero, torch.sqrt(torch.where(nonzero, sq, 1.0)), 0.0)
+
+
+def contact_response(v: torch.Tensor, vc: torch.Tensor, n: torch.Tensor, friction, dim: int = -1) -> torch.Tensor:
     """Coulomb contact response of SPEC §8 for particles in contact.
 
     v, vc: (..., 3) m/s, particle and collider velocities at the particle; n: (..., 3) unit
-    outward normal; friction μ ≥ 0. With v_rel = v − v_c split into normal v_N = (v_rel·n) n and
-    tangential v_T, the approaching normal part is removed (Δv_N = max(0, −v_rel·n)) and
-    friction scales the tangential part:
+    outward normal; friction μ ≥ 0; dim: the vectors' dim (default the last; the collision
+    stage keeps particles as rows (B, 3, P), dim=1). With v_rel = v − v_c split into normal
+    v_N = (v_rel·n) n and tangential v_T, the approaching normal part is removed
+    (Δv_N = max(0, −v_rel·n)) and friction scales the tangential part:
 
         v' = v_c + max(v_rel·n, 0) n + max(0, 1 − μ Δv_N / |v_T|) v_T      (|v_T| = 0 → v_T = 0)
 
     Returns v' (..., 3) m/s.
     """
     vrel = v - vc
-    vn = _dot(vrel, n)
-    vt = vrel - vn[..., None] * n
-    vt_len = vt.norm(dim=-1)
+    vn = (vrel * n).sum(dim, keepdim=True)
+    vt = vrel - vn * n
+    vt_len = _length(vt, dim).unsqueeze(dim)
     dvn = (-vn).clamp_min(0)
     keep = (1 - friction * dvn / vt_len.clamp_min(1e-30)).clamp_min(0)
     keep = torch.where(vt_len > 0, keep, torch.zeros_like(keep))
-    return vc + vn.clamp_min(0)[..., None] * n + keep[..., None] * vt
+    return vc + vn.clamp_min(0) * n + keep * vt
 
 
 def collide(x: torch.Tensor, v: torch.Tensor, dt, colliders: Sequence[Collider],
@@ -111,8 +112,9 @@ def collide(x: torch.Tensor, v: torch.Tensor, dt, colliders: Sequence[Collider],
         raise ValueError(f"x and v must both be (..., S, N, 3), got {tuple(x.shape)} and {tuple(v.shape)}")
     shape, batch = x.shape, x.shape[:-3]
     s_count, n_count = shape[-3], shape[-2]
-    xf = x.reshape(-1, s_count * n_count, 3)
-    vf = v.reshape(-1, s_count * n_count, 3)
+    # particles as rows (B, 3, P): every op below runs along P
+    xr = x.reshape(-1, s_count * n_count, 3).transpose(1, 2).contiguous()
+    vr = v.reshape(-1, s_count * n_count, 3).transpose(1, 2).contiguous()
     free_k = None
     if free is not None:
         free = torch.as_tensor(free, device=x.device).bool()
@@ -121,8 +123,68 @@ def collide(x: torch.Tensor, v: torch.Tensor, dt, colliders: Sequence[Collider],
                              f"{tuple(free.shape)}")
         free_k = free.expand(s_count, n_count).reshape(s_count * n_count)
     for col, pose in zip(colliders, world_poses):
-        xf, vf, _, _ = collider_response(col, flat_pose(pose, batch, x), xf, vf, dt, free_k)
-    return xf.reshape(shape), vf.reshape(shape)
+        xr, vr, _, _ = _response_rows(col, flat_pose(pose, batch, x), xr, vr, dt, free_k)
+    return (xr.transpose(1, 2).contiguous().reshape(shape), vr.transpose(1, 2).contiguous().reshape(shape))
+
+
+def _to_local_rows(xr: torch.Tensor, rot: torch.Tensor, trans: torch.Tensor) -> torch.Tensor:
+    """xr (B, 3, P) world rows, rot (B, 3, 3), trans (B, 3) → local rows Rᵀ (x − T) = Rᵀ x − Rᵀ T."""
+    offset = -(rot.transpose(1, 2) @ trans[:, :, None])  # (B, 3, 1)
+    if rot.shape[0] == 1:
+        return torch.addmm(offset[0], rot[0].t(), xr[0])[None]
+    return torch.baddbmm(offset, rot.transpose(1, 2), xr)
+
+
+def _rotate_rows(d: torch.Tensor, rot: torch.Tensor) -> torch.Tensor:
+    """R d for rows d (B, 3, P) with R (B, 3, 3)."""
+    if rot.shape[0] == 1:
+        return (rot[0] @ d[0])[None]
+    return rot @ d
+
+
+def _cross_rows(a: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+    """a × r for a (B, 3) and rows r (B, 3, P): (B, 3, P), component by component (the cross
+    product's own formula, each term a long vector op)."""
+    a0, a1, a2 = (a[:, i, None] for i in range(3))
+    r0, r1, r2 = r.unbind(1)
+    return torch.stack((a1 * r2 - a2 * r1, a2 * r0 - a0 * r2, a0 * r1 - a1 * r0), 1)
+
+
+def _sample_rows(col: Collider, local: torch.Tensor) -> tuple:
+    """σ (B, P) and the local normals as rows (B, 3, P) at local rows (B, 3, P)."""
+    b, _, p = local.shape
+    rows = local[0] if b == 1 else local.transpose(0, 1).reshape(3, b * p)
+    by_rows = getattr(col, "distance_and_normal_rows", None)
+    if by_rows is not None:
+        sigma, normal = by_rows(rows)
+    else:  # a collider given by its distance_and_normal alone (e.g. the native op's views)
+        sigma, normal = col.distance_and_normal(rows.t().contiguous())
+        normal = normal.t()
+    return sigma.reshape(b, p), normal.reshape(3, b, p).transpose(0, 1)
+
+
+def _response_rows(col: Collider, flat: tuple, xr: torch.Tensor, vr: torch.Tensor, dt, free_k=None, *,
+                   tol: float = 0.0, skin: float = 0.0, friction=None) -> tuple:
+    """:func:`collider_response` on particles as rows: xr, vr (B, 3, P) m, m/s. Returns
+    (x', v') as rows (B, 3, P), σ (B, P) and inside (B, P)."""
+    rot, trans, lin, ang = flat
+    sigma, n_local = _sample_rows(col, _to_local_rows(xr, rot, trans))
+    inside = sigma < -tol if tol else sigma < 0
+    if free_k is not None:
+        inside = inside & free_k
+    n = _rotate_rows(n_local, rot)
+    if lin is not None:
+        vc = lin[:, :, None] + _cross_rows(ang, xr - trans[:, :, None])
+    else:
+        vc = torch.zeros_like(vr)
+    v_new = contact_response(vr, vc, n, col.friction if friction is None else friction, dim=1)
+    x_new = xr + dt * (v_new - vr)
+    for _ in range(max(1, col.projection_iterations)):
+        s_new, nl_new = _sample_rows(col, _to_local_rows(x_new, rot, trans))
+        depth = (skin - s_new).clamp_min(0) if skin else (-s_new).clamp_min(0)
+        x_new = x_new + depth[:, None, :] * _rotate_rows(nl_new, rot)
+    mask = inside[:, None, :]
+    return torch.where(mask, x_new, xr), torch.where(mask, v_new, vr), sigma, inside
 
 
 def collider_response(col: Collider, flat: tuple, xf: torch.Tensor, vf: torch.Tensor, dt, free_k=None, *,
@@ -141,21 +203,6 @@ def collider_response(col: Collider, flat: tuple, xf: torch.Tensor, vf: torch.Te
         (x', v', σ, inside): (B, P, 3) m, m/s after the response; σ (B, P) m at the input
         positions and inside (B, P) bool, the particles it moved.
     """
-    rot, trans, lin, ang = flat
-    sigma, n_local = col.distance_and_normal(_world_to_local(xf, rot, trans))
-    inside = sigma < -tol if tol else sigma < 0
-    if free_k is not None:
-        inside = inside & free_k
-    n = _rotate(n_local, rot)
-    if lin is not None:
-        vc = lin[:, None, :] + torch.linalg.cross(ang[:, None, :].expand_as(xf), xf - trans[:, None, :], dim=-1)
-    else:
-        vc = torch.zeros_like(vf)
-    v_new = contact_response(vf, vc, n, col.friction if friction is None else friction)
-    x_new = xf + dt * (v_new - vf)
-    for _ in range(max(1, col.projection_iterations)):
-        s_new, nl_new = col.distance_and_normal(_world_to_local(x_new, rot, trans))
-        depth = (skin - s_new).clamp_min(0) if skin else (-s_new).clamp_min(0)
-        x_new = x_new + depth[..., None] * _rotate(nl_new, rot)
-    mask = inside[..., None]
-    return torch.where(mask, x_new, xf), torch.where(mask, v_new, vf), sigma, inside
+    xr, vr, sigma, inside = _response_rows(col, flat, xf.transpose(1, 2).contiguous(), vf.transpose(1, 2).contiguous(),
+                                           dt, free_k, tol=tol, skin=skin, friction=friction)
+    return xr.transpose(1, 2).contiguous(), vr.transpose(1, 2).contiguous(), sigma, inside

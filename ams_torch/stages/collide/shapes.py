@@ -114,6 +114,13 @@ class Collider(torch.nn.Module, ABC):
         """Local points (..., 3) metres → signed distance σ (...) metres, negative inside."""
         return self.distance_and_normal(points)[0]
 
+    def distance_and_normal_rows(self, rows: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`distance_and_normal` of local points given as rows (3, P) metres: σ (P,) metres
+        and the normals as rows (3, P) (the collision stage's layout). Default: through
+        :meth:`distance_and_normal`."""
+        sigma, normal = self.distance_and_normal(rows.t().contiguous())
+        return sigma, normal.t()
+
 
 class SphereCollider(Collider):
     """Solid ball. center: (3,) metres (local frame), radius: metres."""
@@ -321,6 +328,9 @@ class MeshCollider(Collider):
 
     def distance_and_normal(self, points):
         return self.sdf.distance_and_normal(points)
+
+    def distance_and_normal_rows(self, rows):
+        return self.sdf.distance_and_normal_rows(rows)
 
     def __repr__(self):
         grid = repr(self._grid) if self._grid is not None else f"unbuilt, resolution={self.resolution}"

@@ -43,12 +43,13 @@ from typing import Optional
 import torch
 
 from ams_torch.stages.hair_hair.pressure import ACTIVE_FACE_DENSITY
-from ams_torch.stages.hair_hair.transfer import apply_change, face_corners, interpolate_change, to_head
+from ams_torch.stages.hair_hair.transfer import apply_change, face_corner_rows, interpolate_change, to_head
 
 __all__ = ["BLOCK", "BLOCK_CELLS", "blocks_per_axis", "block_layout", "pool_stencil", "pool_neighbours",
            "p2g_sparse", "pressure_sparse", "g2p_sparse", "pool_density", "active_cells", "densify"]
 
 BLOCK = 4  # cells per block and axis
+_SHIFT = 2  # BLOCK = 1 << _SHIFT
 BLOCK_CELLS = BLOCK ** 3
 _STRIDES = (BLOCK * BLOCK, BLOCK, 1)  # of the local index, per axis
 
@@ -72,15 +73,18 @@ def block_layout(xl: torch.Tensor, origin: torch.Tensor, h: float, r: int, capac
     b = xl.shape[0]
     nb = blocks_per_axis(r)
     nb3 = nb ** 3
+    it = torch.int32 if b * (nb3 + 1) < 2 ** 31 else torch.int64
     g = (xl.detach() - origin.to(xl.dtype)) / h
-    f = torch.nan_to_num(torch.floor(g), nan=-2.0).clamp(-2, r + 2).long()
+    f = torch.nan_to_num(torch.floor(g), nan=-2.0).clamp(-2, r + 2)
+    f = f.permute(2, 0, 1).to(it, memory_format=torch.contiguous_format)  # (3, B, P): rows along P
     lo, hi = (f - 1).clamp_min(0), (f + 1).clamp_max(r)
-    inside = (lo <= hi).all(-1)
-    sel = torch.stack((lo, hi), -2) // BLOCK  # (B, P, 2, 3): first and last block per axis
-    i, j, k = sel[..., 0], sel[..., 1], sel[..., 2]
-    ids = (i[..., :, None, None] * nb + j[..., None, :, None]) * nb + k[..., None, None, :]
-    ids = torch.where(inside[..., None, None, None], ids, nb3).reshape(b, -1)
-    mark = torch.zeros(b, nb3 + 1, dtype=torch.int32, device=xl.device).scatter_(1, ids, 1)[:, :nb3]
+    inside = (lo <= hi).all(0)  # (B, P)
+    sel = torch.stack((lo, hi), 1) >> _SHIFT  # (3, 2, B, P): first and last block per axis (floor of /4)
+    ids = ((sel[0, :, None] * nb + sel[1, None, :]) * nb)[:, :, None] + sel[2, None, None]  # (2, 2, 2, B, P)
+    scene = torch.arange(b, device=xl.device, dtype=it)[:, None] * (nb3 + 1)
+    ids = torch.where(inside, ids, nb3) + scene  # column nb3 of each scene: outside, discarded
+    mark = torch.zeros(b * (nb3 + 1), dtype=torch.int32, device=xl.device).scatter_(0, ids.reshape(-1).long(), 1)
+    mark = mark.reshape(b, nb3 + 1)[:, :nb3]
     pos = mark.cumsum(1)  # int64
     slot = pos - 1
     ok = (mark > 0) & (slot < capacity)
@@ -95,21 +99,30 @@ def pool_stencil(xl: torch.Tensor, origin: torch.Tensor, h: float, r: int, c: in
                  capacity: int):
     """The trilinear c-face stencil of :func:`~.transfer.face_corners` in the pool.
 
-    xl: (B, P, 3) m; table: (B, nb³) int32. Returns flat indices (B, P, 8) long into a
-    (B, K, 3, 64) pool followed by one sentinel (index B·K·3·64, for corners whose block has no
-    slot) and the weights (B, P, 8).
+    xl: (B, P, 3) m; table: (B, nb³) int32. Returns, as rows (8, B, P) (corner 4i + 2j + k of
+    each particle), the flat indices into a (B, K, 3, 64) pool followed by one sentinel (index
+    B·K·3·64, for corners whose block has no slot), int32 (int64 for a pool of 2³¹ entries or
+    more), and the weights.
     """
-    bc, w = face_corners(xl, origin, h, r, c)
-    b = bc.shape[0]
+    lower, w = face_corner_rows(xl, origin, h, r, c)
+    b, p = lower.shape[1:]
     nb = blocks_per_axis(r)
-    q = bc[..., None, :] + _corner_offsets(bc.device)  # (B, P, 8, 3) face indices of the corners
-    blk, loc = q // BLOCK, q % BLOCK
-    bid = (blk[..., 0] * nb + blk[..., 1]) * nb + blk[..., 2]
-    slot = table.long().gather(1, bid.reshape(b, -1)).reshape(bid.shape)
-    local = (loc[..., 0] * BLOCK + loc[..., 1]) * BLOCK + loc[..., 2]
-    scene = torch.arange(b, device=bc.device)[:, None, None] * capacity
-    idx = ((scene + slot) * 3 + c) * BLOCK_CELLS + local
-    return torch.where(slot >= 0, idx, b * capacity * 3 * BLOCK_CELLS), w
+    none = b * capacity * 3 * BLOCK_CELLS  # the sentinel
+    # integer work in int32 where every index fits (int64 products do not vectorise): per axis
+    # the corners' two face indices (lower, lower + 1) ≥ 0, their block and place in it by
+    # shifts, then the 8 corners by broadcasting
+    it = torch.int32 if max(none, b * nb ** 3) < 2 ** 31 else torch.int64
+    lower = lower.to(it)  # (3, B, P)
+    q = torch.stack((lower, lower + 1), 1)  # (3, 2, B, P)
+    blk, loc = q >> _SHIFT, q & (BLOCK - 1)
+    scene = torch.arange(b, device=xl.device, dtype=it)[:, None]  # (B, 1)
+    bid = ((blk[0, :, None] * nb + blk[1, None, :]) * nb)[:, :, None] + (blk[2] + scene * nb ** 3)[None, None]
+    slot = table.reshape(-1).index_select(0, bid.reshape(-1)).reshape(8, b, p).to(it)
+    # flat index ((scene K + slot) 3 + c) 64 + local
+    lz = loc[2] + (scene * (capacity * 3 * BLOCK_CELLS) + c * BLOCK_CELLS)  # (2, B, P)
+    local = ((loc[0, :, None] * BLOCK + loc[1, None, :]) * BLOCK)[:, :, None] + lz[None, None]
+    idx = torch.where(slot >= 0, torch.add(local.reshape(8, b, p), slot, alpha=3 * BLOCK_CELLS), none)
+    return idx, w
 
 
 def p2g_sparse(x: torch.Tensor, v: torch.Tensor, m: torch.Tensor, frame: torch.Tensor, origin: torch.Tensor,
@@ -124,18 +137,19 @@ def p2g_sparse(x: torch.Tensor, v: torch.Tensor, m: torch.Tensor, frame: torch.T
     xl, vl = to_head(frame, x, v)
     table, blocks, count = block_layout(xl, origin, cell_size, resolution, capacity)
     b = x.shape[0]
-    idx, vals = [], []
+    size = b * capacity * 3 * BLOCK_CELLS
+    # mass and c-momentum summed apart (1-D sums: a tight loop each), components in order
+    mass = torch.zeros(size + 1, device=x.device, dtype=x.dtype)
+    mom = torch.zeros(size + 1, device=x.device, dtype=x.dtype)
     for c in range(3):
         ic, wc = pool_stencil(xl, origin, cell_size, resolution, c, table, capacity)
         if stencils is not None:
             stencils.append((ic, wc))
-        idx.append(ic)
-        mv = torch.stack((m, m * vl[..., c]), -1)  # (B, P, 2): mass, c-momentum
-        vals.append(wc[..., None] * mv[:, :, None, :])
-    size = b * capacity * 3 * BLOCK_CELLS
-    acc = torch.zeros(size + 1, 2, device=x.device, dtype=x.dtype)
-    acc.index_add_(0, torch.stack(idx, 0).reshape(-1), torch.stack(vals, 0).reshape(-1, 2))
-    return acc[:size].reshape(b, capacity, 3, BLOCK_CELLS, 2), table, blocks, count
+        flat = ic.reshape(-1)  # corner-major: the sums' order (rounding) is the corners', then the particles'
+        mass.index_add_(0, flat, (wc * m).reshape(-1))
+        mom.index_add_(0, flat, (wc * (m * vl[..., c])).reshape(-1))
+    faces = torch.stack((mass[:size], mom[:size]), -1)
+    return faces.reshape(b, capacity, 3, BLOCK_CELLS, 2), table, blocks, count
 
 
 def pool_neighbours(blocks: torch.Tensor, table: torch.Tensor, r: int) -> torch.Tensor:
@@ -233,12 +247,13 @@ def _listed_neighbours(cell: torch.Tensor, nbr: torch.Tensor, k: int) -> torch.T
     neighbour slots."""
     none = k * BLOCK_CELLS
     scene = torch.arange(cell.shape[0], device=cell.device)[:, None]
-    slot, loc = cell // BLOCK_CELLS, cell % BLOCK_CELLS
+    slot, loc = cell >> (3 * _SHIFT), cell & (BLOCK_CELLS - 1)  # cell ≥ 0: // 64 and % 64
     safe = slot.clamp(0, k - 1)
+    coords = [(loc >> (a * _SHIFT)) & (BLOCK - 1) for a in range(3)]  # along z, y, x (strides 1, 4, 16)
     out = []
     for d in range(6):
         stride, step = _STRIDES[d // 2], (1 if d % 2 else -1)
-        coord = (loc // stride) % BLOCK + step
+        coord = coords[2 - d // 2] + step  # (loc // stride) % BLOCK + step
         leave = (coord < 0) | (coord >= BLOCK)
         to = torch.where(leave, nbr[scene, safe, d], slot)
         local = loc + step * stride - torch.where(leave, step * BLOCK * stride, 0)
@@ -246,14 +261,21 @@ def _listed_neighbours(cell: torch.Tensor, nbr: torch.Tensor, k: int) -> torch.T
     return torch.stack(out, -1)
 
 
-def _take(values: torch.Tensor, index: torch.Tensor, size: int) -> torch.Tensor:
-    """values (size, ...) at index, zero where index == size (the "none" index)."""
-    got = values.index_select(0, index.clamp(max=size - 1))
-    keep = (index < size).reshape((-1,) + (1,) * (got.dim() - 1))
-    return torch.where(keep, got, torch.zeros_like(got))
+def _faces_by_component(faces: torch.Tensor) -> torch.Tensor:
+    """(3, 2, B·K·64): per component the pool's face masses and momenta as contiguous rows (the
+    cell terms gather them by 1-D index_select)."""
+    return faces.permute(2, 4, 0, 1, 3).reshape(3, 2, -1)
 
 
-def _solve(faces, nbr, active, rho0, dt, h: float, cap: int, iterations: int, omega: float, stiffness: float):
+def _take_faces(comp: torch.Tensor, index: torch.Tensor, size: int) -> torch.Tensor:
+    """comp (2, size) one component's face masses and momenta at index (L,); zeros where
+    index == size (the "none" index). Returns (2, L)."""
+    got = comp.index_select(1, index.clamp(max=size - 1))
+    return torch.where(index < size, got, torch.zeros_like(got))
+
+
+def _solve(faces, nbr, active, rho0, dt, h: float, cap: int, iterations: int, omega: float, stiffness: float,
+           comps: Optional[torch.Tensor] = None):
     """φ (B·K·64,) on the pool, the listed cells (B·cap,) and their neighbours (B·cap, 6) (global
     pool cells; B·K·64 = none): the projected Jacobi sweeps of pressure.py, run on a list of each
     scene's active cells (static capacity ``cap``, in cell order; cells beyond it are left out,
@@ -275,14 +297,14 @@ def _solve(faces, nbr, active, rho0, dt, h: float, cap: int, iterations: int, om
     none = b * cells
     g = torch.where(listed < cells, listed + scene * cells, none).reshape(-1)  # (B·cap,) global pool cells
     near_g = torch.where(near < cells, near + scene[..., None] * cells, none).reshape(-1, 6)
+    comps = _faces_by_component(faces) if comps is None else comps
     m_lo, v_lo, lo, m_hi, v_hi, hi = [], [], [], [], [], []
     for c in range(3):
-        flat = faces[:, :, c].reshape(-1, 2)  # (B·K·64, 2): this component's faces
         for out_m, out_v, out_i, at in ((m_lo, v_lo, lo, g), (m_hi, v_hi, hi, near_g[:, 2 * c + 1])):
-            mm = _take(flat, at, none)
-            out_m.append(mm[:, 0])
-            out_v.append(_velocity(mm[:, 0], mm[:, 1]))
-            out_i.append(_inverse_density(mm[:, 0], rho0 * (ACTIVE_FACE_DENSITY * h3), h3))
+            mm = _take_faces(comps[c], at, none)
+            out_m.append(mm[0])
+            out_v.append(_velocity(mm[0], mm[1]))
+            out_i.append(_inverse_density(mm[0], rho0 * (ACTIVE_FACE_DENSITY * h3), h3))
     total = None
     for c in range(3):
         pair = 0.5 * (m_lo[c] + m_hi[c])
@@ -308,14 +330,14 @@ def _solve(faces, nbr, active, rho0, dt, h: float, cap: int, iterations: int, om
     rank = torch.where(ok, pos + scene * cap, b * cap)  # pool cell → list slot, or B·cap
     rank = torch.cat((rank, rank.new_full((b, 1), b * cap)), 1)  # column `cells`: no neighbour
     nbr_l = torch.gather(rank, 1, near.reshape(b, -1)).reshape(-1, 6).t()
-    nbr_l = torch.cat((nbr_l, nbr_l.new_full((6, 1), b * cap)), 1).contiguous()  # (6, B·cap + 1)
+    nbr_l = torch.cat((nbr_l, nbr_l.new_full((6, 1), b * cap)), 1).reshape(-1)  # (6·(B·cap + 1),)
     pad = lambda t: torch.cat((t, t.new_zeros(1)))  # noqa: E731
-    src, coef, w_l = pad(src), pad(coef), [pad(w) for w in weights]
+    src, coef = pad(src), pad(coef)
+    w_l = torch.stack([pad(w) for w in weights])  # (6, B·cap + 1)
     phi_l = torch.zeros_like(src)
     for _ in range(iterations):
-        n = w_l[0] * phi_l.index_select(0, nbr_l[0])
-        for d in range(1, 6):
-            n = n + w_l[d] * phi_l.index_select(0, nbr_l[d])
+        # one gather of the six neighbours, summed over the directions in order x−, x+, y−, …
+        n = (w_l * phi_l.index_select(0, nbr_l).view(w_l.shape)).sum(0)
         nxt = src + coef * n
         phi_l = (nxt + (1.0 - omega) * phi_l).clamp_min(0)
     phi = torch.zeros(none + 1, dtype=faces.dtype, device=dev)
@@ -355,7 +377,8 @@ def pressure_sparse(faces: torch.Tensor, table: torch.Tensor, blocks: torch.Tens
     if iterations == 0:
         return faces.new_zeros(b, k, BLOCK_CELLS), field, blocks_over
     active = _active(faces, nbr, eps)
-    phi, g, near_g = _solve(faces, nbr, active, rho0, dt, h, cap, iterations, omega, stiffness)
+    comps = _faces_by_component(faces)
+    phi, g, near_g = _solve(faces, nbr, active, rho0, dt, h, cap, iterations, omega, stiffness, comps)
     none = b * k * BLOCK_CELLS
     listed = torch.zeros(none + 1, dtype=torch.bool, device=faces.device)
     listed[g] = True  # slot `none`: unused list slots
@@ -363,16 +386,15 @@ def pressure_sparse(faces: torch.Tensor, table: torch.Tensor, blocks: torch.Tens
     phi_pad = torch.cat((phi, phi.new_zeros(1)))
     out = torch.cat((field.permute(2, 0, 1, 3).reshape(3, -1), field.new_zeros(3, 1)), 1)  # (3, none + 1)
     for c in range(3):
-        flat = faces[:, :, c].reshape(-1, 2)
         below = near_g[:, 2 * c]  # the cell under each listed cell's lower c-face
         above = near_g[:, 2 * c + 1]  # the cell over its upper c-face (whose lower c-face that is)
         # each face once: a listed cell's lower face, and its upper face unless the cell above is
         # listed too (then it is that cell's lower face)
         for face, hi, lo, use in ((g, g, below, g < none), (above, above, g, (above < none) & ~listed[above])):
-            mm = _take(flat, face, none)
+            mm = _take_faces(comps[c], face, none)
             grad = (phi_pad[hi] - phi_pad[lo]) / h
-            du = -(grad * _inverse_density(mm[:, 0], eps, h3))
-            value = pic * _velocity(mm[:, 0], mm[:, 1]) + du
+            du = -(grad * _inverse_density(mm[0], eps, h3))
+            value = pic * _velocity(mm[0], mm[1]) + du
             out[c].index_put_((torch.where(use, face, none),), value)
     field = out[:, :-1].reshape(3, b, k, BLOCK_CELLS).permute(1, 2, 0, 3)
     return phi.reshape(b, k, BLOCK_CELLS), field, blocks_over | (active.reshape(b, -1).sum(1) > cap)
@@ -390,7 +412,7 @@ def g2p_sparse(x: torch.Tensor, v: torch.Tensor, field: torch.Tensor, table: tor
     dvl = []
     for c in range(3):
         idx, w = stencils[c] if stencils is not None else pool_stencil(xl, origin, cell_size, resolution, c, table, k)
-        dvl.append(interpolate_change(flat, idx, w, vl[..., c], pic))
+        dvl.append(interpolate_change(flat, idx, w, vl[..., c], pic, corner_dim=0))
     return apply_change(x, v, torch.stack(dvl, -1), frame, free, dt)
 
 

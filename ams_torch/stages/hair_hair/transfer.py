@@ -21,7 +21,8 @@ import torch
 
 from ams_torch.geometry.pose import Pose
 
-__all__ = ["face_dims", "num_faces", "scene_frame", "to_head", "face_corners", "face_stencil", "p2g_torch",
+__all__ = ["face_dims", "num_faces", "scene_frame", "to_head", "face_corners", "face_corner_rows", "face_stencil",
+           "p2g_torch",
            "g2p_torch", "cell_mass", "grid_density"]
 
 
@@ -87,6 +88,13 @@ def face_corners(xl: torch.Tensor, origin: torch.Tensor, h: float, r: int, c: in
     [0, n − 2] and only the weights of corners that exist are kept (a particle half outside
     keeps the share of the samples inside; one fully outside gets zero weights).
     """
+    bc, w = face_corner_rows(xl, origin, h, r, c)
+    return bc.permute(1, 2, 0), w.permute(1, 2, 0).contiguous()
+
+
+def face_corner_rows(xl: torch.Tensor, origin: torch.Tensor, h: float, r: int, c: int):
+    """:func:`face_corners` as rows: the lower corner (3, B, P) long and the weights (8, B, P)
+    (corner-major: every op on them runs along P)."""
     dims = face_dims(r, c)
     g = (xl - origin.to(xl.dtype)) / h
     half = torch.full((3,), 0.5, device=xl.device, dtype=xl.dtype)
@@ -94,15 +102,16 @@ def face_corners(xl: torch.Tensor, origin: torch.Tensor, h: float, r: int, c: in
     base = torch.floor(g)
     f = g - base
     i0 = base.clamp(-2, max(dims) + 1).long()  # far outside: any index with zero weights
-    bc = torch.stack([i0[..., a].clamp(0, dims[a] - 2) for a in range(3)], -1)  # (B, P, 3)
-    d = i0 - bc  # 0 inside; −1 / 1 half outside; else fully outside
+    bc = torch.stack([i0[..., a].clamp(0, dims[a] - 2) for a in range(3)])  # (3, B, P)
+    d = i0 - bc.permute(1, 2, 0)  # 0 inside; −1 / 1 half outside; else fully outside
     one_f = 1 - f
     zero = torch.zeros_like(f)
     w0 = torch.where(d == 0, one_f, torch.where(d == -1, f, zero))
     w1 = torch.where(d == 0, f, torch.where(d == 1, one_f, zero))
-    wa = torch.stack((w0, w1), -1)  # (B, P, 3, 2)
-    w = wa[..., 0, :, None, None] * wa[..., 1, None, :, None] * wa[..., 2, None, None, :]
-    return bc, w.reshape(g.shape[0], g.shape[1], 8)
+    # the 8 products (w_x w_y) w_z as rows along P
+    wa = torch.stack((w0.permute(2, 0, 1), w1.permute(2, 0, 1)), 1)  # (3, 2, B, P)
+    w = wa[0, :, None, None] * wa[1, None, :, None] * wa[2, None, None, :]  # (2, 2, 2, B, P)
+    return bc, w.reshape(8, g.shape[0], g.shape[1])
 
 
 def face_stencil(xl: torch.Tensor, origin: torch.Tensor, h: float, r: int, c: int):
@@ -177,10 +186,13 @@ def g2p_torch(x: torch.Tensor, v: torch.Tensor, field: torch.Tensor, frame: torc
     return apply_change(x, v, torch.stack(dvl, -1), frame, free, dt)
 
 
-def interpolate_change(flat: torch.Tensor, idx: torch.Tensor, w: torch.Tensor, vl_c: torch.Tensor, pic: float):
+def interpolate_change(flat: torch.Tensor, idx: torch.Tensor, w: torch.Tensor, vl_c: torch.Tensor, pic: float,
+                       corner_dim: int = -1):
     """One component of a particle's G2P change ``I(field) − pic · wsum · v_rel``: flat (M,) face
-    values m/s, idx / w (B, P, 8) a stencil into it, vl_c (B, P) m/s. Returns (B, P) m/s."""
-    return (flat[idx] * w).sum(-1) - pic * w.sum(-1) * vl_c
+    values m/s, idx / w (B, P, 8) a stencil into it (idx int32 or int64; ``corner_dim=0``: rows
+    (8, B, P)), vl_c (B, P) m/s. Returns (B, P) m/s."""
+    return (flat.index_select(0, idx.reshape(-1)).view(idx.shape) * w).sum(corner_dim) - \
+        pic * w.sum(corner_dim) * vl_c
 
 
 def apply_change(x: torch.Tensor, v: torch.Tensor, dvl: torch.Tensor, frame: torch.Tensor, free: torch.Tensor, dt):
