@@ -200,7 +200,18 @@ def memory_in_subprocess(args, every: int, path: str) -> dict:
     except (ValueError, IndexError):
         return {"S": args.memory_strands, "frames": args.memory_frames, "checkpoint_every": every, "path": path,
                 "device": args.device, "peak_rise_MiB": float("nan"), "state_MiB": float("nan"),
-                "wall_s": float("nan"), "error": (out.stderr or "").strip().splitlines()[-1:]}
+                "wall_s": float("nan"), "error": _failure(out)}
+
+
+def _failure(proc) -> str:
+    """Why a memory probe gave no result: killed by a signal (SIGKILL: most likely the kernel's
+    out-of-memory killer; the machine's memory is named), or its last line of stderr."""
+    if proc.returncode is not None and proc.returncode < 0:
+        sig = -proc.returncode
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2 ** 30 if hasattr(os, "sysconf") else 0
+        return (f"killed by signal {sig}" + (f" (out of memory: the machine has {total:.0f} GiB)" if sig == 9 else ""))
+    tail = (proc.stderr or "").strip().splitlines()[-1:]
+    return tail[0] if tail else f"exit status {proc.returncode}, no output"
 
 
 # -- report -----------------------------------------------------------------------------------------
@@ -248,12 +259,20 @@ def render(records: list, memory: list, meta: dict, out: Path) -> None:
                   "large blocks on mmap so freed memory leaves the resident set) or of the CUDA allocator.", "",
                   "| path | checkpoint_every | peak rise (MiB) | one state (MiB) | wall (s) |", "|---|---:|---:|---:|---:|"]
         for m in memory:
+            if m.get("error"):
+                err = m["error"] if isinstance(m["error"], str) else "; ".join(m["error"]) or "no output"
+                lines.append(f"| {m['path']} | {m['checkpoint_every']} | did not finish: {err} | – | – |")
+                continue
             lines.append(f"| {m['path']} | {m['checkpoint_every']} | {m['peak_rise_MiB']:.1f} | {m['state_MiB']:.2f} | "
                          f"{m['wall_s']:.1f} |")
+        per = [m["peak_rise_MiB"] / m["checkpoint_every"] for m in memory
+               if not m.get("error") and m["checkpoint_every"] and m["peak_rise_MiB"] == m["peak_rise_MiB"]]
         lines += ["", "The goal was under 64 MiB beyond the states with checkpointing. Checkpointing bounds what is "
                   "kept to one segment of k frames, but inside a segment every frame keeps the torch definition's "
                   "saved tensors of every stage (see above: a gradient frame of every stage runs on the torch "
-                  "definition), about 170 MiB a frame at 1,000 × 32; k = 1 would bound it to one frame's."]
+                  "definition), "
+                  + (f"about {max(per):.0f} MiB a frame at {memory[0]['S']:,} × 32" if per else "a frame's graph")
+                  + "; k = 1 would bound it to one frame's."]
     if meta.get("note"):
         lines += ["", meta["note"]]
     out.parent.mkdir(parents=True, exist_ok=True)
