@@ -105,7 +105,9 @@ def pressure_op(faces: torch.Tensor, table: torch.Tensor, blocks: torch.Tensor, 
                 require_native: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """faces: (B, K, 3, 64, 2); table, blocks, count from P2G; target_density, dt: () tensors;
     active_capacity: active cells per scene the torch sweeps hold. Returns phi (B, K, 64), field
-    (B, K, 3, 64) and overflow (B,) bool (see :func:`~.sparse.pressure_sparse`)."""
+    (B, K, 3, 64) and overflow (B,) bool (see :func:`~.sparse.pressure_sparse`). Slots at or past
+    ``min(count, K)`` are unused: their values are unspecified on the native kernels (as P2G's
+    faces there; G2P reaches the pool through the table only)."""
     return pressure_sparse(faces, table, blocks, count, target_density, dt, cell_size, resolution, iterations, omega,
                            stiffness, pic, active_capacity)
 
