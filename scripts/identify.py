@@ -683,6 +683,15 @@ def main(argv=None) -> int:
                "cases": [{k: v for k, v in c.items() if not k.startswith("_")} for c in cases],
                "scans": scans, "profiles": profiles, "memory": memory}
     results["narrative"] = kept_discussion(out / "identification.md")
+    old = out / "identification.json"
+    if old.exists() and not args.quick:  # the fit at scale is its own run (--scale-only): keep it, with its command
+        try:
+            prev = json.loads(old.read_text())
+        except ValueError:
+            prev = {}
+        if prev.get("scale"):
+            results["scale"] = prev["scale"]
+            results["meta"]["scale_command"] = prev.get("meta", {}).get("scale_command")
     (out / "identification.json").write_text(json.dumps(results, indent=1))
     render(results, out)
     plot(results, out)
