@@ -12,6 +12,8 @@
 #define AMS_GRID_SIMD 1
 #include <immintrin.h>
 
+#include <cstring>
+
 namespace ams_torch {
 namespace grid {
 namespace simd {
@@ -234,71 +236,54 @@ inline void batch_change(const Batch<T>& bt, const T* field, const VecT<T> vl[3]
 // The per-slot passes of the pressure op over one slot's pool faces (slot, c, l, {mass, momentum}),
 // 8 float or 4 double cells at a time: the interleaved pairs are split into a mass and a momentum
 // vector (in cell order), then the same comparisons and the same one-rounding operations as the
-// scalar code, so the results are bit for bit the scalar ones.
-inline void split_pairs(const float* f, __m256& mass, __m256& mom) { // cells l .. l + 7 of f = &pair l
+// scalar code, so the results are bit for bit the scalar ones. Only the split and the mask's bits
+// are type-specific intrinsics.
+inline void split_pairs(const float* f, VecT<float>& mass, VecT<float>& mom) { // cells l .. l + 7 of f = &pair l
   const __m256 a = _mm256_loadu_ps(f), b = _mm256_loadu_ps(f + 8);
   const __m256 m = _mm256_shuffle_ps(a, b, _MM_SHUFFLE(2, 0, 2, 0)); // l, l+1, l+4, l+5 | l+2, l+3, l+6, l+7
   const __m256 p = _mm256_shuffle_ps(a, b, _MM_SHUFFLE(3, 1, 3, 1));
-  mass = _mm256_castpd_ps(_mm256_permute4x64_pd(_mm256_castps_pd(m), _MM_SHUFFLE(3, 1, 2, 0)));
-  mom = _mm256_castpd_ps(_mm256_permute4x64_pd(_mm256_castps_pd(p), _MM_SHUFFLE(3, 1, 2, 0)));
+  mass = (VecT<float>)_mm256_castpd_ps(_mm256_permute4x64_pd(_mm256_castps_pd(m), _MM_SHUFFLE(3, 1, 2, 0)));
+  mom = (VecT<float>)_mm256_castpd_ps(_mm256_permute4x64_pd(_mm256_castps_pd(p), _MM_SHUFFLE(3, 1, 2, 0)));
 }
 
-inline void split_pairs(const double* f, __m256d& mass, __m256d& mom) { // cells l .. l + 3
+inline void split_pairs(const double* f, VecT<double>& mass, VecT<double>& mom) { // cells l .. l + 3
   const __m256d a = _mm256_loadu_pd(f), b = _mm256_loadu_pd(f + 4);
-  mass = _mm256_permute4x64_pd(_mm256_shuffle_pd(a, b, 0x0), _MM_SHUFFLE(3, 1, 2, 0)); // l, l+2, l+1, l+3 → order
-  mom = _mm256_permute4x64_pd(_mm256_shuffle_pd(a, b, 0xF), _MM_SHUFFLE(3, 1, 2, 0));
+  mass = (VecT<double>)_mm256_permute4x64_pd(_mm256_shuffle_pd(a, b, 0x0), _MM_SHUFFLE(3, 1, 2, 0)); // l, l+2, l+1, l+3 → order
+  mom = (VecT<double>)_mm256_permute4x64_pd(_mm256_shuffle_pd(a, b, 0xF), _MM_SHUFFLE(3, 1, 2, 0));
 }
+
+inline uint32_t mask_bits(IntT<float> m) { return uint32_t(_mm256_movemask_ps((__m256)m)); }
+inline uint32_t mask_bits(IntT<double> m) { return uint32_t(_mm256_movemask_pd((__m256d)m)); }
 
 // Bit l: the three lower faces of cell l (slot faces f, 3 × 64 pairs) have mass > eps (false for NaN).
-inline uint64_t lower_faces_massive(const float* f, float eps) {
-  const __m256 e = _mm256_set1_ps(eps);
+template <class T>
+inline uint64_t lower_faces_massive(const T* f, T eps) {
+  constexpr int W = Lanes<T>::W;
   uint64_t bits = 0;
-  for (int l = 0; l < kBlockCells; l += 8) {
-    __m256 all = _mm256_castsi256_ps(_mm256_set1_epi32(-1)), mass, mom;
+  for (int l = 0; l < kBlockCells; l += W) {
+    IntT<T> all = IntT<T>{} - 1;
     for (int c = 0; c < 3; ++c) {
+      VecT<T> mass, mom;
       split_pairs(f + 2 * (c * kBlockCells + l), mass, mom);
-      all = _mm256_and_ps(all, _mm256_cmp_ps(mass, e, _CMP_GT_OQ));
+      all = all & (mass > eps);
     }
-    bits |= uint64_t(uint32_t(_mm256_movemask_ps(all))) << l;
-  }
-  return bits;
-}
-
-inline uint64_t lower_faces_massive(const double* f, double eps) {
-  const __m256d e = _mm256_set1_pd(eps);
-  uint64_t bits = 0;
-  for (int l = 0; l < kBlockCells; l += 4) {
-    __m256d all = _mm256_castsi256_pd(_mm256_set1_epi64x(-1)), mass, mom;
-    for (int c = 0; c < 3; ++c) {
-      split_pairs(f + 2 * (c * kBlockCells + l), mass, mom);
-      all = _mm256_and_pd(all, _mm256_cmp_pd(mass, e, _CMP_GT_OQ));
-    }
-    bits |= uint64_t(uint32_t(_mm256_movemask_pd(all))) << l;
+    bits |= uint64_t(mask_bits(all)) << l;
   }
   return bits;
 }
 
 // The field of a slot where phi cannot reach: out[i] = mass > 0 ? pic * (mom / mass) : 0 for the
 // 3 × 64 faces of f (grid.h's face_field with du = 0).
-inline void quiet_field(const float* f, float pic, float* out) {
-  const __m256 zero = _mm256_setzero_ps(), p = _mm256_set1_ps(pic);
-  for (int i = 0; i < 3 * kBlockCells; i += 8) {
-    __m256 mass, mom;
+template <class T>
+inline void quiet_field(const T* f, T pic, T* out) {
+  constexpr int W = Lanes<T>::W;
+  for (int i = 0; i < 3 * kBlockCells; i += W) {
+    VecT<T> mass, mom;
     split_pairs(f + 2 * i, mass, mom);
-    const __m256 has = _mm256_cmp_ps(mass, zero, _CMP_GT_OQ);
-    const __m256 u = _mm256_div_ps(mom, _mm256_blendv_ps(_mm256_set1_ps(1.0f), mass, has));
-    _mm256_storeu_ps(out + i, _mm256_and_ps(has, _mm256_mul_ps(p, u)));
-  }
-}
-
-inline void quiet_field(const double* f, double pic, double* out) {
-  const __m256d zero = _mm256_setzero_pd(), p = _mm256_set1_pd(pic);
-  for (int i = 0; i < 3 * kBlockCells; i += 4) {
-    __m256d mass, mom;
-    split_pairs(f + 2 * i, mass, mom);
-    const __m256d has = _mm256_cmp_pd(mass, zero, _CMP_GT_OQ);
-    const __m256d u = _mm256_div_pd(mom, _mm256_blendv_pd(_mm256_set1_pd(1.0), mass, has));
-    _mm256_storeu_pd(out + i, _mm256_and_pd(has, _mm256_mul_pd(p, u)));
+    const IntT<T> has = mass > T(0);
+    const VecT<T> u = mom / (has ? mass : VecT<T>{} + T(1));
+    const VecT<T> field = has ? pic * u : VecT<T>{};
+    std::memcpy(out + i, &field, sizeof(field));
   }
 }
 
