@@ -207,6 +207,24 @@ def test_collide_does_not_depend_on_the_schedule(emu, emu_env):
         assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
 
 
+@pytest.mark.parametrize("kind", ["sphere", "capsule", "plane", "mesh"])
+def test_collide_adjoint(cpu, emu, emu_env, kind):
+    """The collision stage's adjoint (one thread per strand) against the CPU kernel (SIMD lanes):
+    x̄, v̄, every strand's pose and friction adjoints and the head rotation's, float64 and float32."""
+    for dtype in (F64, F32):
+        sim, x, v, head, _ = make_case(kind, dtype=dtype, scenes=2, strands=37, rounds=2)
+        world = resolve_world_poses(sim.colliders, head, None)
+        args = native.collision_arguments(sim.model, sim.config, x, v, head, world)
+        g = torch.Generator().manual_seed(5)
+        gx, gv = (torch.randn(x.shape, generator=g, dtype=F64).to(dtype) for _ in range(2))
+        got_c = cpu["cpu"].collide_adjoint(*args, gx, gv)
+        got_e = emu["cuda_emu"].collide_adjoint(*args, gx, gv)
+        assert float(got_c[2].abs().max()) > 0, kind
+        for c, e in zip(got_c, got_e):
+            bound = 1e-12 if dtype == F64 else 64 * EPS32
+            assert float((c - e).abs().max()) <= bound * max(float(c.abs().max()), 1.0), (kind, dtype, rel(e, c))
+
+
 # -- the hair–hair grid ---------------------------------------------------------------------------
 
 @pytest.mark.parametrize("dtype", [F64, F32])

@@ -94,6 +94,8 @@ GROUPS = {
     "frame_adjoint": (("frame/frame_adjoint_cpu.cpp",),
                       ("frame/frame_adjoint_cuda_binding.cpp", "frame/frame_adjoint_cuda.cu")),
     "collide": (("collide/collide_cpu.cpp",), ("collide/collide_cuda_binding.cpp", "collide/collide_cuda.cu")),
+    "collide_adjoint": (("collide/collide_adjoint_cpu.cpp",),
+                        ("collide/collide_adjoint_cuda_binding.cpp", "collide/collide_adjoint_cuda.cu")),
     "grid": (("grid/grid_cpu.cpp",), ("grid/grid_cuda_binding.cpp", "grid/grid_cuda.cu")),
 }
 
@@ -157,10 +159,15 @@ _ALL = {**_BACKENDS, **_SELFTEST, **emulation.emulated_specs({**_BACKENDS, **_SE
 GRADIENT_STAGES = {
     "dynamics": "native forward and adjoint (frame_posed / frame_adjoint of the cpu / cuda library) when the "
                 "contact runs once per frame or there are no colliders; with Params(contact='substep') and "
-                "colliders, the one-particle angular form (angular_reaction=False) or a callable external force: "
-                "the torch definition",
+                "colliders: the torch definition, its contact after every substep by the native collision "
+                "forward and adjoint (as 'collisions'); the one-particle angular form (angular_reaction=False) "
+                "or a callable external force: the torch definition",
     "hair_hair": "torch definition",
-    "collisions": "torch definition",
+    "collisions": "native forward and adjoint (collide / collide_adjoint of the cpu / cuda library) for "
+                  "spheres, capsules, planes and meshes with at most 16 push-out passes; gradients reach x, v, "
+                  "the colliders' world poses and velocities (the head's pose through colliders that follow it), "
+                  "friction and the head rotation; a hollow sphere, a collider class without kernels, or "
+                  "collider geometry or a rest shape requiring grad: the torch definition",
     "finish": "torch definition",
     "plastic_yield": "torch definition",
 }

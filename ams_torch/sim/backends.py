@@ -4,7 +4,7 @@ smoke tests of the fused ops' backends.
 :func:`resolve_backend` is the simulator's backend decision: it builds (or loads) every backend the
 configuration needs, raises for ``backend="native"`` naming each one that cannot be had and why,
 and otherwise falls back to the torch definition with one warning per backend
-(:mod:`ams_torch.native.build`). The probes registered here (frame, collisions, grid) are what
+(:mod:`ams_torch.native.build`). The probes registered here (frame, collisions, the collisions' adjoint, grid) are what
 ``build`` runs right after loading such a backend: one tiny call compared with the torch definition.
 """
 from __future__ import annotations
@@ -17,7 +17,7 @@ from ams_torch.geometry.pose import Pose
 from ams_torch.sim.contact import collisions_world
 from ams_torch.sim.dynamics import frame_dynamics
 from ams_torch.sim.model import Model, coefficients
-from ams_torch.sim.native import collision_arguments, op_arguments
+from ams_torch.sim.native import _collisions_vjp, collision_arguments, op_arguments
 from ams_torch.sim.params import Params
 from ams_torch.sim.state import Config
 from ams_torch.native import build as _native, probes
@@ -142,6 +142,18 @@ def _collide(ns, device) -> None:
     probes.close(got[1], want[1], "collide (v)")
 
 
+def _collide_adjoint(ns, device) -> None:
+    model, config, x, v, _, pose1 = _tiny(device, [SphereCollider((0.01, 0.0, 0.08), 0.02, friction=0.3)])
+    x = x + torch.tensor([0.0, 0.0, -0.01], dtype=F64, device=device)
+    world = resolve_world_poses(list(model.colliders), pose1, None)
+    args = collision_arguments(model, config, x, v, pose1, world)
+    gx, gv = torch.ones_like(x), torch.linspace(-1.0, 1.0, x.numel(), dtype=F64, device=device).reshape(x.shape)
+    got = ns.collide_adjoint(*args, gx, gv)
+    want = _collisions_vjp(*args[:8], args[8:], gx, gv)  # the torch definition's vector-Jacobian product
+    probes.close(got[0], want[0], "collide_adjoint (x)")
+    probes.close(got[1], want[1], "collide_adjoint (v)")
+
+
 def _grid(ns, device) -> None:
     g = torch.Generator().manual_seed(0)
     x = (0.3 * torch.rand(1, 6, 3, generator=g, dtype=F64) + 0.1).to(device)
@@ -158,4 +170,5 @@ def _grid(ns, device) -> None:
 
 probes.register("frame", _frame)
 probes.register("collide", _collide)
+probes.register("collide_adjoint", _collide_adjoint)
 probes.register("grid", _grid)

@@ -35,7 +35,8 @@ from ams_torch.sim.backends import frame_route
 from ams_torch.sim.contact import collisions_world, substep_contact
 from ams_torch.sim.dynamics import frame_dynamics
 from ams_torch.sim.finish import native_finish, pin_and_speed
-from ams_torch.sim.native import native_collisions, native_frame_dynamics
+from ams_torch.sim.native import (native_collisions, native_collisions_diff, native_collisions_diff_supported,
+                                  native_frame_dynamics, substep_contact_diff)
 from ams_torch.sim.native_grad import native_frame_dynamics_diff
 from ams_torch.sim.native_contact import native_frame_contact
 from ams_torch.sim.model import Coefficients, Model, coefficients
@@ -87,14 +88,18 @@ def resolve_pose(prev: Pose, pose: Optional[Pose], dt) -> tuple:
 
 
 def collisions(model: Model, config: Config, x: torch.Tensor, v: torch.Tensor, head_pose: Pose,
-               collider_poses: Sequence[Optional[Pose]], native: bool = False) -> tuple:
+               collider_poses: Sequence[Optional[Pose]], native: bool = False, diff: bool = False) -> tuple:
     """The collision stage (SPEC §8): the colliders' world poses for this frame
     (:func:`~ams_torch.stages.collide.resolve_world_poses`), then the response and the edge-length
-    restore (:func:`~ams_torch.sim.contact.collisions_world`, or its fused native kernel).
+    restore (:func:`~ams_torch.sim.contact.collisions_world`, or its fused native kernel; with
+    ``diff``, a gradient frame of a native simulator, the native kernel and its native adjoint
+    where :func:`~ams_torch.sim.native.native_collisions_diff_supported` holds).
     x, v: (..., S, N, 3) m, m/s. Returns the new (x, v)."""
     poses = resolve_world_poses(list(model.colliders), head_pose, list(collider_poses) or None)
     if native:
         return native_collisions(model, config, x, v, head_pose, poses)
+    if diff and len(model.colliders) and native_collisions_diff_supported(model, x, config):
+        return native_collisions_diff(model, config, x, v, head_pose, poses)
     return collisions_world(model, config, x, v, head_pose, poses)
 
 
@@ -201,6 +206,11 @@ class Frame(NamedTuple):
         return self._replace(**changes)
 
 
+def _native_grad(f: Frame) -> bool:
+    """Whether this is a gradient frame of a native simulator (its stages with a native adjoint run it)."""
+    return f.config.backend == "native" and not f.native
+
+
 def dynamics_stage(f: Frame) -> Frame:
     """The strand dynamics (SPEC §4): M substeps and follow-the-leader (:mod:`ams_torch.sim.dynamics`,
     or its fused kernel; with ``Params(contact="substep")`` the contact response after every
@@ -208,7 +218,10 @@ def dynamics_stage(f: Frame) -> Frame:
     model, config, state, control = f.model, f.config, f.state, f.control
     contact = None  # Params(contact="substep"): the contact response after every substep
     if config.contact == "substep" and config.colliders:
-        contact = functools.partial(substep_contact, model, config, collider_poses=control.collider_poses)
+        run = substep_contact
+        if _native_grad(f) and native_collisions_diff_supported(model, state.x, config):
+            run = substep_contact_diff  # a gradient frame: the native collision forward and adjoint
+        contact = functools.partial(run, model, config, collider_poses=control.collider_poses)
     args = (model, f.coeffs, config, state.x, state.v, state.ghost_rest, state.sag_offset, state.pose, f.pose1,
             f.hermite, f.state.time if control.time is None else control.time, control.external_force)
     speed = None
@@ -235,7 +248,7 @@ def hair_hair_stage(f: Frame) -> Frame:
 
 def collisions_stage(f: Frame) -> Frame:
     """Hair–solid collisions and their edge-length restore (SPEC §8): :func:`collisions`."""
-    x, v = collisions(f.model, f.config, f.x, f.v, f.pose1, f.control.collider_poses, f.native)
+    x, v = collisions(f.model, f.config, f.x, f.v, f.pose1, f.control.collider_poses, f.native, _native_grad(f))
     return f.replace(x=x, v=v)
 
 

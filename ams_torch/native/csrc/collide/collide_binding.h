@@ -33,6 +33,14 @@ constexpr const char* kCollideSchema =
     "Tensor[] collider_poses, int[] collider_ints, float[] collider_floats, float dt, int rounds, "
     "bool inextensibility, float ftl_damping) -> (Tensor, Tensor)";
 
+// The adjoint (collide_adjoint.h): the same inputs and the adjoints x_bar, v_bar of the outputs;
+// returns x̄, v̄ (..., S, N, 3), the colliders' pose and friction adjoints (B, S, C, 19: R̄ row-major,
+// t̄, linear, angular, μ̄; each strand's share) and the head rotation's (B, S, 9).
+constexpr const char* kCollideAdjointSchema =
+    "collide_adjoint(Tensor x, Tensor v, Tensor[] model, Tensor head_rotation, Tensor[] collider_tensors, "
+    "Tensor[] collider_poses, int[] collider_ints, float[] collider_floats, float dt, int rounds, "
+    "bool inextensibility, float ftl_damping, Tensor x_bar, Tensor v_bar) -> (Tensor, Tensor, Tensor, Tensor)";
+
 struct CollideInputs {
   at::Tensor x, v, rest, edge, num_pinned, head;
   std::vector<at::Tensor> tensors, poses; // contiguous, kept alive
@@ -116,6 +124,25 @@ inline CollideInputs check_collide_inputs(const char* op, const at::Tensor& x, c
   TORCH_CHECK(rounds >= 0, op, ": rounds must be >= 0");
   in.settings = CollideSettings{dt, int(rounds), inextensibility, ftl_damping};
   return in;
+}
+
+// The adjoint's own conditions (besides check_collide_inputs): no hollow sphere, at most
+// kMaxPushout push-out passes, output adjoints of x's shape; returns them contiguous.
+inline std::tuple<at::Tensor, at::Tensor> check_adjoint_inputs(const char* op, const CollideInputs& in,
+                                                              const at::Tensor& x_bar, const at::Tensor& v_bar,
+                                                              int max_pushout) {
+  for (int64_t c = 0; c < in.count; ++c) {
+    TORCH_CHECK(in.ints[3 * c] != kHollowSphere, op, ": collider ", c, " is a hollow sphere, which has no native adjoint");
+    TORCH_CHECK(in.ints[3 * c + 1] <= max_pushout, op, ": collider ", c, " has ", in.ints[3 * c + 1],
+                " push-out passes; the native adjoint keeps at most ", max_pushout);
+  }
+  for (const at::Tensor* t : {&x_bar, &v_bar}) {
+    TORCH_CHECK(t->sizes() == in.x.sizes(), op, ": the output adjoints must have shape ", in.x.sizes(), ", got ",
+                t->sizes());
+    TORCH_CHECK(t->scalar_type() == in.x.scalar_type() && t->device() == in.x.device(), op,
+                ": the output adjoints must have x's dtype and device");
+  }
+  return {x_bar.contiguous(), v_bar.contiguous()};
 }
 
 template <class T>
