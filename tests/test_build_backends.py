@@ -370,7 +370,7 @@ def test_includes_are_path_qualified(tmp_path, monkeypatch):
     ("native", "substep", 1, False, False, "native_contact"),
     ("native", "substep", 0, False, False, "native_finish"),  # substep contact without colliders: none
     ("native", "frame", 1, True, True, "native_adjoint"),
-    ("native", "substep", 1, False, True, "torch"),  # substep contact has no native adjoint
+    ("native", "substep", 1, False, True, "native_adjoint_contact"),  # substep by substep, the contact between
 ])
 def test_frame_route(backend, contact, colliders, hair_hair, grad, want):
     """The one decision of how a frame's dynamics run (sim.backends.frame_route)."""

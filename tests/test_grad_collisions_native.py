@@ -125,13 +125,17 @@ def _spy(monkeypatch):
 @pytest.mark.parametrize("contact", ["frame", "substep"])
 def test_gradient_frames_run_the_native_adjoint(monkeypatch, contact):
     """A rollout's gradient through a mesh head collider (and a moving sphere) runs the native
-    adjoint in every frame (the collision stage, and with substep contact every substep), and
-    equals the torch path's."""
+    adjoints in every frame (the dynamics, the collision stage, and with substep contact the
+    dynamics substep by substep and the contact after each), and equals the torch path's."""
     head = at.default_head(2)
     grid = at.geometry.sdf.SDFGrid.from_mesh(head, resolution=24, cache=False)
     rest = at.grooms.head.hanging_groom(head, 12, 8, 0.08, sdf=grid, seed=2)
     grads = {}
     calls, real = _spy(monkeypatch)
+    from ams_torch.sim import native_grad
+    frame_ops = []
+    op = native_grad.frame_dynamics_diff_op
+    monkeypatch.setattr(native_grad, "frame_dynamics_diff_op", lambda *a: frame_ops.append(a[-1]) or op(*a))
     try:
         for backend in ("native", "torch"):
             cols = [at.MeshCollider(grid), at.stages.SphereCollider((0.0, -0.05, 0.06), 0.04, friction=0.4)]
@@ -153,6 +157,9 @@ def test_gradient_frames_run_the_native_adjoint(monkeypatch, contact):
     frames = len(poses)
     expect = frames * (1 + (2 if contact == "substep" else 0))
     assert len(native_calls) == expect, native_calls
+    # the dynamics' native forward and adjoint: once a frame, or once a substep (without follow-the-leader)
+    assert len(frame_ops) == frames * (2 if contact == "substep" else 1)
+    assert all(inext is (contact != "substep") for inext in frame_ops)
     for a, b in zip(grads["native"], grads["torch"]):
         assert float(b.abs().max()) > 0
         assert rel(a, b) <= 1e-9, rel(a, b)

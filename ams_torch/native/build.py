@@ -157,11 +157,11 @@ _ALL = {**_BACKENDS, **_SELFTEST, **emulation.emulated_specs({**_BACKENDS, **_SE
 #: How each stage of a frame whose inputs require grad runs on a native simulator (forward and
 #: adjoint): reported by native_status()["gradients"].
 GRADIENT_STAGES = {
-    "dynamics": "native forward and adjoint (frame_posed / frame_adjoint of the cpu / cuda library) when the "
-                "contact runs once per frame or there are no colliders; with Params(contact='substep') and "
-                "colliders: the torch definition, its contact after every substep by the native collision "
-                "forward and adjoint (as 'collisions'); the one-particle angular form (angular_reaction=False) "
-                "or a callable external force: the torch definition",
+    "dynamics": "native forward and adjoint (frame_posed / frame_adjoint of the cpu / cuda library); with "
+                "Params(contact='substep') and colliders substep by substep, the contact after each by the native "
+                "collision forward and adjoint (as 'collisions'), follow-the-leader at the frame's end on the "
+                "torch definition; the one-particle angular form (angular_reaction=False), a callable external "
+                "force or a rest shape requiring grad: the torch definition",
     "hair_hair": "torch definition",
     "collisions": "native forward and adjoint (collide / collide_adjoint of the cpu / cuda library) for "
                   "spheres, capsules, planes and meshes with at most 16 push-out passes; gradients reach x, v, "

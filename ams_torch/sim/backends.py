@@ -81,6 +81,9 @@ FRAME_ROUTES = {
                      "nothing runs after the dynamics)",
     "native_contact": "ams_torch.sim.native_contact.native_frame_contact (the contact response at every substep)",
     "native_adjoint": "ams_torch.sim.native_grad.native_frame_dynamics_diff (native forward and adjoint)",
+    "native_adjoint_contact": "ams_torch.sim.native_grad.native_frame_contact_diff (substep contact in a gradient "
+                              "frame: each substep's native forward and adjoint, then the contact's, then "
+                              "follow-the-leader on the torch definition)",
 }
 
 
@@ -88,7 +91,7 @@ def frame_route(config: Config, needs_grad: bool) -> str:
     """How this frame's strand dynamics run: the one decision, from the frozen config and whether an
     input keeps a gradient (a key of :data:`FRAME_ROUTES`). A config whose backend is not "native"
     runs the torch definition; a gradient frame of a native config runs the native forward and
-    adjoint (the torch definition with substep contact, which has no native adjoint); otherwise
+    adjoint (with substep contact: substep by substep, the contact's own adjoint between); otherwise
     the fused kernel with substep contact, or without, with the frame's end fused in when no stage
     runs after the dynamics. Each entry point still sends the inputs its kernel cannot take (a
     callable external force, another dtype, a collider class without kernels) to the torch
@@ -97,7 +100,7 @@ def frame_route(config: Config, needs_grad: bool) -> str:
         return "torch"
     contact = config.contact == "substep" and bool(config.colliders)
     if needs_grad:
-        return "torch" if contact else "native_adjoint"
+        return "native_adjoint_contact" if contact else "native_adjoint"
     if contact:
         return "native_contact"
     return "native" if (config.hair_hair or config.colliders) else "native_finish"

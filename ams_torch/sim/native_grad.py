@@ -12,11 +12,15 @@ coefficients (mass, drag, edge / bend / torsion stiffness, integrity, angular: t
 Params fields behind them, per-strand fields too, follow by autograd), the non-Hookean curve
 (transition, breaking point, soft ratio) and sag-free offset, and the substep poses.
 
+With ``Params(contact="substep")`` a gradient frame runs :func:`native_frame_contact_diff`: the op
+once per substep (M = 1, no follow-the-leader), the collision op and its native adjoint after each
+(:func:`~ams_torch.sim.native.substep_contact_diff`), follow-the-leader on the torch definition.
+
 Where the adjoint is not native (the one-particle angular form, a callable
 external force, a grad-carrying rest shape, another dtype or device, kernels that do not build)
-the frame takes the torch definition; the step's other stages (hair–hair, collisions, the frame's
-end, the plastic yield) keep the torch definition in a gradient frame
-(``ams_torch.native_status()["gradients"]``).
+the frame takes the torch definition; of the step's other stages the collisions have their own
+native adjoint (:mod:`ams_torch.sim.native`), hair–hair, the frame's end and the plastic yield keep
+the torch definition in a gradient frame (``ams_torch.native_status()["gradients"]``).
 
 * default implementation (any device): the torch definition (``frame_dynamics`` with the given
   substep poses); CPU / CUDA: the native kernel; ``register_fake``: shapes.
@@ -27,15 +31,15 @@ from __future__ import annotations
 import torch
 
 from ams_torch.geometry.pose import Pose
-from ams_torch.sim.dynamics import frame_dynamics, substep_poses
+from ams_torch.sim.dynamics import frame_dynamics, inextensibility, substep_poses
 from ams_torch.sim.model import Coefficients, Model
 from ams_torch.sim.native import MODEL_FIELDS, _rebuild, op_arguments
-from ams_torch.sim.op_support import frame_op_schema
+from ams_torch.sim.op_support import FrameSettings, frame_op_schema
 from ams_torch.sim.state import Config, ExternalForce
 from ams_torch.native.dispatch import native_available, native_namespace
 
 __all__ = ["frame_dynamics_diff_op", "frame_dynamics_adjoint_op", "native_frame_dynamics_diff", "native_adjoint_supported",
-           "substep_pose_tensor"]
+           "native_frame_contact_diff", "substep_pose_tensor"]
 
 _GRAD_FIELDS = ("mass", "drag", "edge", "bend", "torsion", "integrity", "angular")  # adjoint outputs 4 … 10
 _LAW_FIELDS = ("transition", "breaking", "soft_ratio")  # the non-Hookean curve: adjoint output 13
@@ -245,3 +249,41 @@ def native_frame_dynamics_diff(model: Model, coeffs: Coefficients, config: Confi
     hermite = bool(hermite and pose0.has_velocity and pose1.has_velocity)
     poses = substep_pose_tensor(pose0, pose1, hermite, config.substeps, config.dt, x)
     return frame_dynamics_diff_op(state, ext, model_list, poses, *settings[:-1])
+
+
+def native_frame_contact_diff(model: Model, coeffs: Coefficients, config: Config, x: torch.Tensor,
+                              v: torch.Tensor, ghost_rest: torch.Tensor, sag_offset: torch.Tensor, pose0: Pose,
+                              pose1: Pose, hermite: bool, time: torch.Tensor, external_force: ExternalForce = None,
+                              contact=None) -> tuple:
+    """One frame of strand dynamics with the contact response after every substep
+    (``Params(contact="substep")``), differentiable: substep by substep, the fused frame kernel of one
+    substep (its M + 1 substep poses sliced from the frame's, no follow-the-leader) with its native
+    adjoint (:func:`frame_dynamics_diff_op`), then ``contact(x, v, pose, h)`` (the collision op and its
+    native adjoint: :func:`~ams_torch.sim.native.substep_contact_diff`), and follow-the-leader at the
+    frame's end on the torch definition. The same arithmetic as
+    :func:`~ams_torch.sim.dynamics.frame_dynamics` with ``contact``: one substep of M depends on the
+    frame only through its two poses (ghosts, pin targets, the sag-free offset are recomputed from
+    them). Arguments and result as that function; inputs :func:`native_adjoint_supported` rejects take
+    it itself."""
+    if not native_adjoint_supported(model, coeffs, config, x, external_force):
+        return frame_dynamics(model, coeffs, config, x, v, ghost_rest, sag_offset, pose0, pose1, hermite, time,
+                              external_force, contact=contact)
+    state, ext, model_list, _, *settings = op_arguments(model, coeffs, config, x, v, ghost_rest, sag_offset, pose0,
+                                                        pose1, hermite, external_force)
+    hermite = bool(hermite and pose0.has_velocity and pose1.has_velocity)
+    m_sub = config.substeps
+    poses = substep_pose_tensor(pose0, pose1, hermite, m_sub, config.dt, x)
+    pose_list = substep_poses(pose0, pose1, hermite, m_sub, config.dt)
+    h = config.dt / m_sub
+    one = list(settings[:-1])
+    one[FrameSettings._fields.index("dt")] = h
+    one[FrameSettings._fields.index("substeps")] = 1
+    one[FrameSettings._fields.index("inextensibility")] = False
+    rest_of_state = list(state[2:])
+    for s in range(m_sub):
+        x, v = frame_dynamics_diff_op([x, v] + rest_of_state, ext, model_list, poses[:, s:s + 2].contiguous(), *one)
+        if contact is not None:
+            x, v = contact(x, v, pose1 if s + 1 == m_sub else pose_list[s + 1], h)
+    if config.inextensibility:
+        x, v = inextensibility(model, config, x, v, pose_list[-1], config.dt)  # pose1's rotation
+    return x, v

@@ -37,7 +37,7 @@ from ams_torch.sim.dynamics import frame_dynamics
 from ams_torch.sim.finish import native_finish, pin_and_speed
 from ams_torch.sim.native import (native_collisions, native_collisions_diff, native_collisions_diff_supported,
                                   native_frame_dynamics, substep_contact_diff)
-from ams_torch.sim.native_grad import native_frame_dynamics_diff
+from ams_torch.sim.native_grad import native_frame_contact_diff, native_frame_dynamics_diff
 from ams_torch.sim.native_contact import native_frame_contact
 from ams_torch.sim.model import Coefficients, Model, coefficients
 from ams_torch.sim.state import Config, Control, State
@@ -227,6 +227,8 @@ def dynamics_stage(f: Frame) -> Frame:
     speed = None
     if f.route == "native_adjoint":  # a gradient frame: the fused kernel and its native adjoint
         x, v = native_frame_dynamics_diff(*args)
+    elif f.route == "native_adjoint_contact":  # the same, substep by substep, with the contact's adjoint
+        x, v = native_frame_contact_diff(*args, contact=contact)
     elif f.route == "torch":
         x, v = frame_dynamics(*args, contact=contact)
     elif f.route == "native_contact":
