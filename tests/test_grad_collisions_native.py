@@ -19,6 +19,7 @@ from native_cases import make_case
 
 import ams_torch as at
 from ams_torch.sim import native
+from ams_torch.sim import native_collide_grad as ncg
 from ams_torch.stages.collide import resolve_world_poses
 
 F64 = torch.float64
@@ -56,8 +57,8 @@ def _both(args, seed=0):
     g = torch.Generator().manual_seed(seed)
     gx = torch.randn(args[0].shape, generator=g, dtype=args[0].dtype)
     gv = torch.randn(args[0].shape, generator=g, dtype=args[0].dtype)
-    nat = native._collisions_adjoint_kernel(*args, gx, gv)
-    ref = native._collisions_vjp(*args[:8], tuple(args[8:12]), gx, gv)
+    nat = ncg._collisions_adjoint_kernel(*args, gx, gv)
+    ref = ncg._collisions_vjp(*args[:8], tuple(args[8:12]), gx, gv)
     return nat, ref
 
 
@@ -102,23 +103,23 @@ def test_hollow_sphere_keeps_the_torch_definition(monkeypatch):
     sim, x, v, head, _ = make_case("hollow", scenes=None, strands=7)
     args = _arguments(sim, x, v, head)
     called = []
-    monkeypatch.setattr(native, "native_namespace", lambda *a, **k: called.append(a) or None)
+    monkeypatch.setattr(ncg, "native_namespace", lambda *a, **k: called.append(a) or None)
     nat, ref = _both(args)
     assert not called or all(a[0] != "collide_adjoint" for a in called)
     for a, b in zip(nat, ref):
         assert torch.equal(a, b)
-    assert not native.native_collisions_diff_supported(sim.model, x, sim.config)
+    assert not ncg.native_collisions_diff_supported(sim.model, x, sim.config)
 
 
 def _spy(monkeypatch):
     calls = []
-    real = native._collisions_adjoint_kernel
+    real = ncg._collisions_adjoint_kernel
 
     def spy(*a):
         calls.append(a[8])  # dt: the frame's, or the substep's
         return real(*a)
-    monkeypatch.setattr(native, "_collisions_adjoint_kernel", spy)
-    native.collisions_adjoint_op.register_kernel("cpu")(spy)
+    monkeypatch.setattr(ncg, "_collisions_adjoint_kernel", spy)
+    ncg.collisions_adjoint_op.register_kernel("cpu")(spy)
     return calls, real
 
 
@@ -153,7 +154,7 @@ def test_gradient_frames_run_the_native_adjoint(monkeypatch, contact):
             if backend == "native":
                 native_calls = list(calls)
     finally:
-        native.collisions_adjoint_op.register_kernel("cpu")(real)
+        ncg.collisions_adjoint_op.register_kernel("cpu")(real)
     frames = len(poses)
     expect = frames * (1 + (2 if contact == "substep" else 0))
     assert len(native_calls) == expect, native_calls

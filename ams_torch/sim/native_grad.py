@@ -14,12 +14,12 @@ Params fields behind them, per-strand fields too, follow by autograd), the non-H
 
 With ``Params(contact="substep")`` a gradient frame runs :func:`native_frame_contact_diff`: the op
 once per substep (M = 1, no follow-the-leader), the collision op and its native adjoint after each
-(:func:`~ams_torch.sim.native.substep_contact_diff`), follow-the-leader on the torch definition.
+(:func:`~ams_torch.sim.native_collide_grad.substep_contact_diff`), follow-the-leader on the torch definition.
 
 Where the adjoint is not native (the one-particle angular form, a callable
 external force, a grad-carrying rest shape, another dtype or device, kernels that do not build)
 the frame takes the torch definition; of the step's other stages the collisions have their own
-native adjoint (:mod:`ams_torch.sim.native`), hair–hair, the frame's end and the plastic yield keep
+native adjoint (:mod:`ams_torch.sim.native_collide_grad`), hair–hair, the frame's end and the plastic yield keep
 the torch definition in a gradient frame (``ams_torch.native_status()["gradients"]``).
 
 * default implementation (any device): the torch definition (``frame_dynamics`` with the given

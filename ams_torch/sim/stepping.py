@@ -35,8 +35,9 @@ from ams_torch.sim.backends import frame_route
 from ams_torch.sim.contact import collisions_world, substep_contact
 from ams_torch.sim.dynamics import frame_dynamics
 from ams_torch.sim.finish import native_finish, pin_and_speed
-from ams_torch.sim.native import (native_collisions, native_collisions_diff, native_collisions_diff_supported,
-                                  native_frame_dynamics, substep_contact_diff)
+from ams_torch.sim.native import native_collisions, native_frame_dynamics
+from ams_torch.sim.native_collide_grad import (native_collisions_diff, native_collisions_diff_supported,
+                                               substep_contact_diff)
 from ams_torch.sim.native_grad import native_frame_contact_diff, native_frame_dynamics_diff
 from ams_torch.sim.native_contact import native_frame_contact
 from ams_torch.sim.model import Coefficients, Model, coefficients
@@ -93,7 +94,7 @@ def collisions(model: Model, config: Config, x: torch.Tensor, v: torch.Tensor, h
     (:func:`~ams_torch.stages.collide.resolve_world_poses`), then the response and the edge-length
     restore (:func:`~ams_torch.sim.contact.collisions_world`, or its fused native kernel; with
     ``diff``, a gradient frame of a native simulator, the native kernel and its native adjoint
-    where :func:`~ams_torch.sim.native.native_collisions_diff_supported` holds).
+    where :func:`~ams_torch.sim.native_collide_grad.native_collisions_diff_supported` holds).
     x, v: (..., S, N, 3) m, m/s. Returns the new (x, v)."""
     poses = resolve_world_poses(list(model.colliders), head_pose, list(collider_poses) or None)
     if native:
