@@ -1,8 +1,10 @@
 """The hair–solid contact response (SPEC §8, paper Eq. 10), as dense masked tensor updates.
 
 Every particle is tested against every collider and the response is applied where the
-particle is inside, with a fixed number of push-out passes: no gathers of contact particles,
-no data-dependent shapes or branches, so the stage can be compiled and captured.
+particle is inside, with a fixed number of push-out passes. On a GPU and under torch.compile this
+runs on every particle, masked: no gathers of contact particles, no data-dependent shapes or
+branches, so the stage can be compiled and captured; eager on the CPU the response and its
+push-out run on the inside particles only (gathered, then scattered back: the same arithmetic).
 """
 from __future__ import annotations
 
@@ -163,15 +165,12 @@ def _sample_rows(col: Collider, local: torch.Tensor) -> tuple:
     return sigma.reshape(b, p), normal.reshape(3, b, p).transpose(0, 1)
 
 
-def _response_rows(col: Collider, flat: tuple, xr: torch.Tensor, vr: torch.Tensor, dt, free_k=None, *,
-                   tol: float = 0.0, skin: float = 0.0, friction=None) -> tuple:
-    """:func:`collider_response` on particles as rows: xr, vr (B, 3, P) m, m/s. Returns
-    (x', v') as rows (B, 3, P), σ (B, P) and inside (B, P)."""
+def _respond(col: Collider, flat: tuple, xr: torch.Tensor, vr: torch.Tensor, n_local: torch.Tensor, dt,
+             skin: float, friction) -> tuple:
+    """The response and the push-out passes of particles as rows xr, vr (B, 3, P) m, m/s with their
+    local normals n_local (B, 3, P): (x', v') as rows, for every particle (the caller keeps them
+    where the particle is inside)."""
     rot, trans, lin, ang = flat
-    sigma, n_local = _sample_rows(col, _to_local_rows(xr, rot, trans))
-    inside = sigma < -tol if tol else sigma < 0
-    if free_k is not None:
-        inside = inside & free_k
     n = _rotate_rows(n_local, rot)
     if lin is not None:
         vc = lin[:, :, None] + _cross_rows(ang, xr - trans[:, :, None])
@@ -183,6 +182,43 @@ def _response_rows(col: Collider, flat: tuple, xr: torch.Tensor, vr: torch.Tenso
         s_new, nl_new = _sample_rows(col, _to_local_rows(x_new, rot, trans))
         depth = (skin - s_new).clamp_min(0) if skin else (-s_new).clamp_min(0)
         x_new = x_new + depth[:, None, :] * _rotate_rows(nl_new, rot)
+    return x_new, v_new
+
+
+def _compacts(xr: torch.Tensor, rot: torch.Tensor) -> bool:
+    """Whether the response may run on the inside particles only (:func:`_response_rows`): CPU
+    tensors in eager mode (the particles' count is known on the host, no device to wait for) and one
+    pose for every scene. On a GPU, under torch.compile or in a CUDA graph the response runs on
+    every particle, masked (no data-dependent shape, no host sync: capturable)."""
+    return xr.device.type == "cpu" and rot.shape[0] == 1 and not torch.compiler.is_compiling()
+
+
+def _response_rows(col: Collider, flat: tuple, xr: torch.Tensor, vr: torch.Tensor, dt, free_k=None, *,
+                   tol: float = 0.0, skin: float = 0.0, friction=None) -> tuple:
+    """:func:`collider_response` on particles as rows: xr, vr (B, 3, P) m, m/s. Returns
+    (x', v') as rows (B, 3, P), σ (B, P) and inside (B, P).
+
+    Each particle's arithmetic is the same on both routes: masked (every particle, kept where
+    inside) or, where :func:`_compacts`, on the inside particles gathered into rows (1, 3, K) and
+    scattered back (a particle in contact is ~1 % of a groom: the push-out passes' samples of the
+    collider are the stage's cost)."""
+    rot, trans, _, _ = flat
+    sigma, n_local = _sample_rows(col, _to_local_rows(xr, rot, trans))
+    inside = sigma < -tol if tol else sigma < 0
+    if free_k is not None:
+        inside = inside & free_k
+    if _compacts(xr, rot):
+        b, _, p = xr.shape
+        idx = inside.reshape(-1).nonzero().squeeze(1)  # (K,) over the scenes' particles
+        if idx.numel() == 0:
+            return xr, vr, sigma, inside
+        cols = [t.transpose(0, 1).reshape(3, b * p) if b > 1 else t[0] for t in (xr, vr, n_local)]
+        x_k, v_k = _respond(col, flat, cols[0][:, idx][None], cols[1][:, idx][None], cols[2][:, idx][None], dt, skin,
+                            friction)
+        out = [c.index_copy(1, idx, k[0]) for c, k in ((cols[0], x_k), (cols[1], v_k))]
+        out = [o.reshape(3, b, p).transpose(0, 1) if b > 1 else o[None] for o in out]
+        return out[0], out[1], sigma, inside
+    x_new, v_new = _respond(col, flat, xr, vr, n_local, dt, skin, friction)
     mask = inside[:, None, :]
     return torch.where(mask, x_new, xr), torch.where(mask, v_new, vr), sigma, inside
 
