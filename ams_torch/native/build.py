@@ -162,7 +162,9 @@ GRADIENT_STAGES = {
                 "collision forward and adjoint (as 'collisions'), follow-the-leader at the frame's end on the "
                 "torch definition; the one-particle angular form (angular_reaction=False), a callable external "
                 "force or a rest shape requiring grad: the torch definition",
-    "hair_hair": "torch definition",
+    "hair_hair": "native forward (p2g / pressure / g2p of the cpu / cuda library); adjoint: the torch "
+                 "definition's vector-Jacobian product, recomputed in the backward pass from the stage's inputs "
+                 "(nothing of the grid kept between the passes)",
     "collisions": "native forward and adjoint (collide / collide_adjoint of the cpu / cuda library) for "
                   "spheres, capsules, planes and meshes with at most 16 push-out passes; gradients reach x, v, "
                   "the colliders' world poses and velocities (the head's pose through colliders that follow it), "

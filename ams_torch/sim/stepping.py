@@ -244,7 +244,8 @@ def dynamics_stage(f: Frame) -> Frame:
 def hair_hair_stage(f: Frame) -> Frame:
     """Hair–hair interaction (SPEC §6) on the model's grid; records the first grid overflow."""
     x, v, overflow = hair_hair_interaction(f.model.hair_hair, f.x, f.v, f.coeffs.mass, f.pose1, f.config.dt,
-                                     ~f.model.pinned, backend="auto" if f.native else "torch", with_overflow=True)
+                                     ~f.model.pinned, backend="auto" if (f.native or _native_grad(f)) else "torch",
+                                     with_overflow=True, recompute=_native_grad(f))
     before = f.overflow_frame if f.overflow_frame is not None else torch.full_like(f.state.frame, -1)
     return f.replace(x=x, v=v, overflow_frame=torch.where(overflow & (before < 0), f.state.frame + 1, before))
 

@@ -10,7 +10,9 @@ block-sparse grid of :mod:`.sparse` (a pool of K blocks of 4³ cells per scene; 
   float64; otherwise (not built, ``AMS_TORCH_NATIVE=0``, another dtype) the torch definition,
   unless ``require_native`` asks for an error instead;
 * ``register_fake``: shapes for ``torch.compile`` / meta tensors. No autograd formula: the
-  stage calls these ops only when nothing requires grad (gradients come from the torch path).
+  stage calls these ops when nothing requires grad, or in a gradient frame of a native simulator
+  inside ``stage._NativeForwardRecomputedAdjoint`` (forward only: its backward recomputes the
+  torch definition for the vector-Jacobian product).
 
 What the kernels do differently from the torch definition (same arithmetic per value; slots
 at or beyond ``min(count, K)`` are left unwritten):

@@ -10,7 +10,7 @@ from ams_torch.geometry.pose import Pose
 from ams_torch.stages.hair_hair.config import HairHairGrid
 from ams_torch.stages.hair_hair.detailed import detailed_collisions
 from ams_torch.native.dispatch import keeps_gradient
-from ams_torch.stages.hair_hair.native import NATIVE_DTYPES, g2p, p2g, pressure
+from ams_torch.stages.hair_hair.native import NATIVE_DTYPES, g2p, native_available, p2g, pressure
 from ams_torch.stages.hair_hair.sparse import g2p_sparse, p2g_sparse, pressure_sparse
 from ams_torch.stages.hair_hair.transfer import scene_frame, to_head
 
@@ -87,9 +87,49 @@ def _use_native(backend: str, tensors, dtype) -> bool:
     return not grad and dtype in NATIVE_DTYPES
 
 
+class _NativeForwardRecomputedAdjoint(torch.autograd.Function):
+    """The grid part (P2G → pressure → G2P) in a gradient frame: forward by the native kernels (no
+    graph kept), backward the torch definition's vector-Jacobian product, recomputed from the saved
+    inputs (``sparse.py``: exact for the definition; the forward values are the kernels', which equal
+    it to rounding). Inputs as the stage's flattened ones: xf, vf (B, P, 3), m (B, P), frame,
+    origin, target, dt, free; ``meta`` = (h, R, K, solve, active capacity). Returns x', v', overflow."""
+
+    @staticmethod
+    def forward(ctx, xf, vf, m, frame, origin, target, dtt, free, meta):
+        h, r, k, solve, active = meta
+        xc, vc, fc, oc = (t.detach().contiguous() for t in (xf, vf, frame, origin))
+        faces, table, blocks, count = p2g(xc, vc, m.detach().contiguous(), fc, oc, h, r, k, False)
+        _, field, overflow = pressure(faces, table, blocks, count, target, dtt, h, r, *solve, active, False)
+        x1, v1 = g2p(xc, vc, field, table, fc, oc, free, dtt, h, r, solve[3], False)
+        ctx.save_for_backward(xf, vf, m, frame, origin, target, dtt, free)
+        ctx.meta = meta
+        ctx.mark_non_differentiable(overflow)
+        return x1, v1, overflow
+
+    @staticmethod
+    def backward(ctx, gx, gv, _):
+        xf, vf, m, frame, origin, target, dtt, free = ctx.saved_tensors
+        h, r, k, solve, active = ctx.meta
+        needs = ctx.needs_input_grad[:4]
+        leaves = [t.detach().requires_grad_(n) for t, n in zip((xf, vf, m, frame), needs)]
+        with torch.enable_grad():
+            stencils: list = []
+            faces, table, blocks, count = p2g_sparse(leaves[0], leaves[1], leaves[2], leaves[3], origin, h, r, k,
+                                                     stencils)
+            _, field, _ = pressure_sparse(faces, table, blocks, count, target, dtt, h, r, *solve, active)
+            x1, v1 = g2p_sparse(leaves[0], leaves[1], field, table, leaves[3], origin, free, dtt, h, r, solve[3],
+                                stencils)
+            outs = [(o, g) for o, g in ((x1, gx), (v1, gv)) if g is not None]
+            wrt = [t for t, n in zip(leaves, needs) if n]
+            grads = iter(torch.autograd.grad([o for o, _ in outs], wrt, [g for _, g in outs], allow_unused=True))
+        res = [next(grads) if n else None for n in needs]
+        res = [torch.zeros_like(t) if (n and g is None) else g for g, n, t in zip(res, needs, leaves)]
+        return (*res, None, None, None, None, None)
+
+
 def hair_hair_stage(grid: Optional[HairHairGrid], x: torch.Tensor, v: torch.Tensor, mass,
                     head_pose: Optional[Pose], dt, free: Optional[torch.Tensor] = None, backend: str = "auto",
-                    with_overflow: bool = False):
+                    with_overflow: bool = False, recompute: bool = False):
     """Hair–hair interaction for one frame (SPEC §6), run after inextensibility.
 
     Args:
@@ -109,6 +149,10 @@ def hair_hair_stage(grid: Optional[HairHairGrid], x: torch.Tensor, v: torch.Tens
             otherwise the torch definition. ``"native"``: the native kernels or an error.
             ``"torch"``: the torch definition (differentiable).
         with_overflow: also return the overflow flag.
+        recompute: when an input requires grad and the native kernels are built (float32 /
+            float64): the forward by the native kernels and the backward the torch definition's
+            vector-Jacobian product recomputed from the inputs (nothing of the grid kept between
+            the passes); a gradient frame of a native simulator asks for it.
     Returns:
         (x', v'): (..., S, N, 3) metres and m/s, with ``x' = x + dt (v' − v)`` for the grid part
         (plus the position push of detailed collisions, when enabled); with ``with_overflow``,
@@ -134,7 +178,11 @@ def hair_hair_stage(grid: Optional[HairHairGrid], x: torch.Tensor, v: torch.Tens
     target = _like(grid.target_density, x)
     h, r, k, pic = grid.cell_size, grid.resolution, grid.capacity, 1.0 - cfg.flip
     solve = (cfg.pressure_iterations, cfg.jacobi_omega, cfg.volume_stiffness, pic)
-    if _use_native(backend, (xf, vf, m, frame, origin, target, dtt), x.dtype):
+    if (recompute and backend == "auto" and keeps_gradient((xf, vf, m, frame)) and x.dtype in NATIVE_DTYPES
+            and native_available(x.device, x.dtype)):
+        x1, v1, overflow = _NativeForwardRecomputedAdjoint.apply(xf, vf, m, frame, origin, target, dtt, free,
+                                                                 (h, r, k, solve, grid.active_capacity))
+    elif _use_native(backend, (xf, vf, m, frame, origin, target, dtt), x.dtype):
         strict = backend == "native"
         xc, vc, frame, origin = xf.contiguous(), vf.contiguous(), frame.contiguous(), origin.contiguous()
         faces, table, blocks, count = p2g(xc, vc, m.contiguous(), frame, origin, h, r, k, strict)
