@@ -156,7 +156,9 @@ def test_gradient_frames_run_the_native_adjoint(monkeypatch, contact):
     finally:
         ncg.collisions_adjoint_op.register_kernel("cpu")(real)
     frames = len(poses)
-    expect = frames * (1 + (2 if contact == "substep" else 0))
+    # a frame: the collision stage; with substep contact also the contact after each of the 2 substeps and
+    # follow-the-leader at the frame's end (the collision op without colliders)
+    expect = frames * (1 + (3 if contact == "substep" else 0))
     assert len(native_calls) == expect, native_calls
     # the dynamics' native forward and adjoint: once a frame, or once a substep (without follow-the-leader)
     assert len(frame_ops) == frames * (2 if contact == "substep" else 1)

@@ -159,9 +159,10 @@ _ALL = {**_BACKENDS, **_SELFTEST, **emulation.emulated_specs({**_BACKENDS, **_SE
 GRADIENT_STAGES = {
     "dynamics": "native forward and adjoint (frame_posed / frame_adjoint of the cpu / cuda library); with "
                 "Params(contact='substep') and colliders substep by substep, the contact after each by the native "
-                "collision forward and adjoint (as 'collisions'), follow-the-leader at the frame's end on the "
-                "torch definition; the one-particle angular form (angular_reaction=False), a callable external "
-                "force or a rest shape requiring grad: the torch definition",
+                "collision forward and adjoint (as 'collisions'), follow-the-leader at the frame's end by the "
+                "collision kernels without colliders and their adjoint; the one-particle angular form "
+                "(angular_reaction=False), a callable external force or a rest shape requiring grad: the torch "
+                "definition",
     "hair_hair": "native forward (p2g / pressure / g2p of the cpu / cuda library); adjoint: the torch "
                  "definition's vector-Jacobian product, recomputed in the backward pass from the stage's inputs "
                  "(nothing of the grid kept between the passes)",

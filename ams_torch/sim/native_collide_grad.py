@@ -23,14 +23,14 @@ import torch
 from ams_torch.geometry.pose import Pose
 from ams_torch.native.dispatch import native_available, native_namespace
 from ams_torch.sim.model import Model
-from ams_torch.sim.native import (MAX_COLLIDERS, NATIVE_COLLIDERS, _collisions_torch, collision_arguments,
-                                  collisions_op)
+from ams_torch.sim.native import (MAX_COLLIDERS, NATIVE_COLLIDERS, _collisions_torch, _pose_tensors,
+                                  collision_arguments, collisions_op)
 from ams_torch.sim.state import Config
 from ams_torch.stages.collide import (CapsuleCollider, HollowSphereCollider, MeshCollider, PlaneCollider,
                                       SphereCollider, resolve_world_poses)
 
 __all__ = ["MAX_ADJOINT_PUSHOUT", "ADJOINT_COLLIDERS", "collisions_adjoint_op", "native_collisions_diff_supported",
-           "native_collisions_diff", "substep_contact_diff"]
+           "native_collisions_diff", "substep_contact_diff", "native_inextensibility_diff"]
 
 #: push-out passes the native adjoint keeps (``kMaxPushout`` of collide_adjoint.h)
 MAX_ADJOINT_PUSHOUT = 16
@@ -143,8 +143,9 @@ def _collisions_backward(ctx, gx, gv):
     g_tensors: list = [None] * len(tensors)
     for c in range(count):
         g_tensors[4 * c] = out[3 + c]
-    return (out[0], out[1], [None] * n_model, out[2], g_tensors, list(out[3 + count:]), None, None, None, None,
-            None, None)
+    # int / float lists are leaves of the inputs' structure, except empty ones (no colliders: follow-the-leader)
+    return (out[0], out[1], [None] * n_model, out[2], g_tensors, list(out[3 + count:]), None if ints else [],
+            None if floats else [], None, None, None, None)
 
 
 collisions_op.register_autograd(_collisions_backward, setup_context=_collisions_setup)
@@ -194,3 +195,15 @@ def substep_contact_diff(model: Model, config: Config, x: torch.Tensor, v: torch
     cols = list(model.colliders)
     poses = resolve_world_poses(cols, head_pose, list(collider_poses) or None)
     return native_collisions_diff(model, config, x, v, head_pose, poses, dt=float(h), rounds=0)
+
+
+def native_inextensibility_diff(model: Model, config: Config, x: torch.Tensor, v: torch.Tensor, pose: Pose) -> tuple:
+    """Follow-the-leader (:func:`~ams_torch.sim.dynamics.inextensibility`: the frame's Δt, fallback
+    directions carried by ``pose``'s rotation) by the native forward and adjoint: the collision op
+    without colliders and one round (its follow-the-leader is the fused frame's routine, its adjoint
+    frame_adjoint.h's). x, v: (..., S, N, 3) m, m/s. Returns the new (x, v); gradients reach x, v
+    and the rotation. Call it where :func:`native_collisions_diff_supported` holds."""
+    head, _ = _pose_tensors(Pose(pose.rotation, pose.translation, check=False), x)
+    model_list = [model.rest_positions, model.edge_rest_length, model.num_pinned]
+    return collisions_op(x, v, model_list, head[0], [], [], [], [], float(config.dt), 1, True,
+                         float(config.ftl_damping))

@@ -14,7 +14,8 @@ Params fields behind them, per-strand fields too, follow by autograd), the non-H
 
 With ``Params(contact="substep")`` a gradient frame runs :func:`native_frame_contact_diff`: the op
 once per substep (M = 1, no follow-the-leader), the collision op and its native adjoint after each
-(:func:`~ams_torch.sim.native_collide_grad.substep_contact_diff`), follow-the-leader on the torch definition.
+(:func:`~ams_torch.sim.native_collide_grad.substep_contact_diff`), follow-the-leader by the collision op
+without colliders and its native adjoint.
 
 Where the adjoint is not native (the one-particle angular form, a callable
 external force, a grad-carrying rest shape, another dtype or device, kernels that do not build)
@@ -34,6 +35,7 @@ from ams_torch.geometry.pose import Pose
 from ams_torch.sim.dynamics import frame_dynamics, inextensibility, substep_poses
 from ams_torch.sim.model import Coefficients, Model
 from ams_torch.sim.native import MODEL_FIELDS, _rebuild, op_arguments
+from ams_torch.sim.native_collide_grad import native_collisions_diff_supported, native_inextensibility_diff
 from ams_torch.sim.op_support import FrameSettings, frame_op_schema
 from ams_torch.sim.state import Config, ExternalForce
 from ams_torch.native.dispatch import native_available, native_namespace
@@ -259,7 +261,7 @@ def native_frame_contact_diff(model: Model, coeffs: Coefficients, config: Config
     (``Params(contact="substep")``), differentiable: substep by substep, the fused frame kernel of one
     substep (its M + 1 substep poses sliced from the frame's, no follow-the-leader) with its native
     adjoint (:func:`frame_dynamics_diff_op`), then ``contact(x, v, pose, h)`` (the collision op and its
-    native adjoint: :func:`~ams_torch.sim.native.substep_contact_diff`), and follow-the-leader at the
+    native adjoint: :func:`~ams_torch.sim.native_collide_grad.substep_contact_diff`), and follow-the-leader at the
     frame's end on the torch definition. The same arithmetic as
     :func:`~ams_torch.sim.dynamics.frame_dynamics` with ``contact``: one substep of M depends on the
     frame only through its two poses (ghosts, pin targets, the sag-free offset are recomputed from
@@ -284,6 +286,9 @@ def native_frame_contact_diff(model: Model, coeffs: Coefficients, config: Config
         x, v = frame_dynamics_diff_op([x, v] + rest_of_state, ext, model_list, poses[:, s:s + 2].contiguous(), *one)
         if contact is not None:
             x, v = contact(x, v, pose1 if s + 1 == m_sub else pose_list[s + 1], h)
-    if config.inextensibility:
-        x, v = inextensibility(model, config, x, v, pose_list[-1], config.dt)  # pose1's rotation
+    if config.inextensibility:  # pose1's rotation carries the fallback directions
+        if native_collisions_diff_supported(model, x, config):
+            x, v = native_inextensibility_diff(model, config, x, v, pose_list[-1])
+        else:
+            x, v = inextensibility(model, config, x, v, pose_list[-1], config.dt)
     return x, v
