@@ -285,8 +285,8 @@ def render(records: list, memory: list, meta: dict, out: Path) -> None:
                   "Each row a fresh process: `ams_torch.sim.rollout(..., checkpoint_every=k, reduce=...)` (no state "
                   "kept per frame), the peak rise of resident memory (CPU: VmHWM over VmRSS before the rollout, with "
                   "large blocks on mmap so freed memory leaves the resident set) or of the CUDA allocator.", "",
-                  f"Each probe ran {memory[0].get('reps', 1)} times (the peak of a multi-threaded process varies "
-                  "from run to run with the allocator's arenas): median, and the range.", "",
+                  f"Each probe ran {memory[0].get('reps', 1)} times, each in its own process: median, and the "
+                  "range.", "",
                   "| path | checkpoint_every | peak rise (MiB), median | range | one state (MiB) | wall (s) |",
                   "|---|---:|---:|---:|---:|---:|"]
         for m in memory:
