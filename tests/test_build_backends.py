@@ -114,7 +114,8 @@ def test_simulator_builds_only_its_devices_library(tmp_path):
         print(json.dumps(dict(attempted=sorted(k for k in build.kinds() if st[k]["attempted"]),
                               ops=[hasattr(ns, op) for op in ("solve_banded", "frame", "frame_finish", "finish",
                                                               "frame_contact", "frame_posed", "frame_adjoint",
-                                                              "collide", "collide_adjoint", "p2g", "pressure", "g2p")])))
+                                                              "collide", "collide_adjoint", "p2g", "pressure", "g2p", "sweeps",
+                                                              "sweeps_adjoint")])))
     """, tmp_path)
     assert out["attempted"] == ["cpu"] and all(out["ops"]), out
 

@@ -225,6 +225,31 @@ def test_collide_adjoint(cpu, emu, emu_env, kind):
             assert float((c - e).abs().max()) <= bound * max(float(c.abs().max()), 1.0), (kind, dtype, rel(e, c))
 
 
+@pytest.mark.parametrize("dtype", [F64, F32])
+def test_pressure_sweeps_and_adjoint(cpu, emu, emu_env, dtype):
+    """The pressure sweeps (a launch per sweep) and their adjoint (per-slot launch, atomicAdd
+    scatter) against the CPU kernels."""
+    g = torch.Generator().manual_seed(6)
+    n1 = 1500
+    src = (torch.rand(n1, generator=g, dtype=F64) - 0.3).to(dtype)
+    coef = torch.rand(n1, generator=g, dtype=F64).to(dtype)
+    w = (0.2 * torch.rand(6, n1, generator=g, dtype=F64)).to(dtype)
+    nbr = torch.randint(0, n1, (6, n1), generator=g)
+    nbr[:, -1] = n1 - 1
+    src[-1] = coef[-1] = 0
+    w[:, -1] = 0
+    nbr = nbr.reshape(-1)
+    gout = torch.randn(n1, generator=g, dtype=F64).to(dtype)
+    bound = 1e-12 if dtype == F64 else 64 * EPS32
+    for iterations in (0, 1, 7):
+        phi_c = cpu["cpu"].sweeps(src, coef, w, nbr, iterations, 0.6)
+        phi_e = emu["cuda_emu"].sweeps(src, coef, w, nbr, iterations, 0.6)
+        assert float((phi_c - phi_e).abs().max()) <= bound * max(float(phi_c.abs().max()), 1.0), iterations
+        for c, e in zip(cpu["cpu"].sweeps_adjoint(src, coef, w, nbr, iterations, 0.6, gout),
+                        emu["cuda_emu"].sweeps_adjoint(src, coef, w, nbr, iterations, 0.6, gout)):
+            assert float((c - e).abs().max()) <= bound * max(float(c.abs().max()), 1.0), (iterations, rel(e, c))
+
+
 # -- the hair–hair grid ---------------------------------------------------------------------------
 
 @pytest.mark.parametrize("dtype", [F64, F32])

@@ -96,7 +96,8 @@ GROUPS = {
     "collide": (("collide/collide_cpu.cpp",), ("collide/collide_cuda_binding.cpp", "collide/collide_cuda.cu")),
     "collide_adjoint": (("collide/collide_adjoint_cpu.cpp",),
                         ("collide/collide_adjoint_cuda_binding.cpp", "collide/collide_adjoint_cuda.cu")),
-    "grid": (("grid/grid_cpu.cpp",), ("grid/grid_cuda_binding.cpp", "grid/grid_cuda.cu")),
+    "grid": (("grid/grid_cpu.cpp", "grid/sweeps_cpu.cpp"),
+             ("grid/grid_cuda_binding.cpp", "grid/grid_cuda.cu", "grid/sweeps_cuda_binding.cpp", "grid/sweeps_cuda.cu")),
 }
 
 # backend -> (extension name, sources compiled, headers they read (relative to csrc/; left empty here),
@@ -165,7 +166,8 @@ GRADIENT_STAGES = {
                 "definition",
     "hair_hair": "native forward (p2g / pressure / g2p of the cpu / cuda library); adjoint: the torch "
                  "definition's vector-Jacobian product, recomputed in the backward pass from the stage's inputs "
-                 "(nothing of the grid kept between the passes)",
+                 "(nothing of the grid kept between the passes), its pressure sweeps run and differentiated by "
+                 "native kernels (sweeps / sweeps_adjoint); P2G, the cell terms and G2P differentiated by autograd",
     "collisions": "native forward and adjoint (collide / collide_adjoint of the cpu / cuda library) for "
                   "spheres, capsules, planes and meshes with at most 16 push-out passes; gradients reach x, v, "
                   "the colliders' world poses and velocities (the head's pose through colliders that follow it), "

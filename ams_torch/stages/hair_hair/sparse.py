@@ -275,7 +275,7 @@ def _take_faces(comp: torch.Tensor, index: torch.Tensor, size: int) -> torch.Ten
 
 
 def _solve(faces, nbr, active, rho0, dt, h: float, cap: int, iterations: int, omega: float, stiffness: float,
-           comps: Optional[torch.Tensor] = None):
+           comps: Optional[torch.Tensor] = None, native_sweeps: bool = False):
     """φ (B·K·64,) on the pool, the listed cells (B·cap,) and their neighbours (B·cap, 6) (global
     pool cells; B·K·64 = none): the projected Jacobi sweeps of pressure.py, run on a list of each
     scene's active cells (static capacity ``cap``, in cell order; cells beyond it are left out,
@@ -334,8 +334,11 @@ def _solve(faces, nbr, active, rho0, dt, h: float, cap: int, iterations: int, om
     pad = lambda t: torch.cat((t, t.new_zeros(1)))  # noqa: E731
     src, coef = pad(src), pad(coef)
     w_l = torch.stack([pad(w) for w in weights])  # (6, B·cap + 1)
+    ns = _sweeps_namespace(src) if native_sweeps else None
     if torch.is_grad_enabled() and any(t.requires_grad for t in (src, coef, w_l)):
-        phi_l = _Sweeps.apply(src, coef, w_l, nbr_l, iterations, omega)
+        phi_l = (_NativeSweeps if ns is not None else _Sweeps).apply(src, coef, w_l, nbr_l, iterations, omega)
+    elif ns is not None:
+        phi_l = ns.sweeps(src, coef, w_l, nbr_l, iterations, omega)
     else:
         phi_l = _sweeps(src, coef, w_l, nbr_l, iterations, omega)
     phi = torch.zeros(none + 1, dtype=faces.dtype, device=dev)
@@ -392,9 +395,34 @@ class _Sweeps(torch.autograd.Function):
         return g_src, g_coef, g_w, None, None, None
 
 
+def _sweeps_namespace(src: torch.Tensor):
+    """The native library holding the sweeps' kernels for ``src``'s device and dtype, or None."""
+    from ams_torch.native.dispatch import native_namespace
+
+    return native_namespace("grid", src)
+
+
+class _NativeSweeps(torch.autograd.Function):
+    """:func:`_sweeps` and its vector-Jacobian product (:class:`_Sweeps`) by the native kernels
+    (``csrc/grid/sweeps.h``: ``sweeps``, ``sweeps_adjoint``, the same operations; the adjoint runs the
+    sweeps again keeping φ before each). Nothing but the inputs is kept between the passes."""
+
+    @staticmethod
+    def forward(ctx, src, coef, w_l, nbr_l, iterations, omega):
+        ctx.save_for_backward(src, coef, w_l, nbr_l)
+        ctx.meta = (iterations, omega)
+        return _sweeps_namespace(src).sweeps(src, coef, w_l, nbr_l, iterations, omega)
+
+    @staticmethod
+    def backward(ctx, g):
+        src, coef, w_l, nbr_l = ctx.saved_tensors
+        g_src, g_coef, g_w = _sweeps_namespace(src).sweeps_adjoint(src, coef, w_l, nbr_l, *ctx.meta, g.contiguous())
+        return g_src, g_coef, g_w, None, None, None
+
+
 def pressure_sparse(faces: torch.Tensor, table: torch.Tensor, blocks: torch.Tensor, count: torch.Tensor,
                     target_density: torch.Tensor, dt, cell_size: float, resolution: int, iterations: int, omega: float,
-                    stiffness: float, pic: float, active_capacity: Optional[int] = None):
+                    stiffness: float, pic: float, active_capacity: Optional[int] = None, native_sweeps: bool = False):
     """The pressure solve and the face field on the pool (definition of the native ``pressure``):
     :func:`~.pressure.pressure_torch` cell by cell and face by face, in its order of operations.
 
@@ -404,7 +432,9 @@ def pressure_sparse(faces: torch.Tensor, table: torch.Tensor, blocks: torch.Tens
     sweeps and the cell terms cost this, not the pool; see :func:`_solve`). Returns phi
     (B, K, 64) kg/(m·s), field (B, K, 3, 64) m/s and overflow (B,) bool: the scene's hair
     occupied more than K blocks (``count > K``: P2G left blocks out) or, with sweeps, had more
-    active cells than ``active_capacity`` (the cells beyond it kept φ = 0).
+    active cells than ``active_capacity`` (the cells beyond it kept φ = 0). ``native_sweeps``: the
+    sweeps (and, when differentiated, their adjoint) by the native kernels where built (the hair–hair
+    adjoint of native gradient frames asks for it; the torch path keeps the definition).
     """
     h = cell_size
     h3 = h * h * h
@@ -425,7 +455,7 @@ def pressure_sparse(faces: torch.Tensor, table: torch.Tensor, blocks: torch.Tens
         return faces.new_zeros(b, k, BLOCK_CELLS), field, blocks_over
     active = _active(faces, nbr, eps)
     comps = _faces_by_component(faces)
-    phi, g, near_g = _solve(faces, nbr, active, rho0, dt, h, cap, iterations, omega, stiffness, comps)
+    phi, g, near_g = _solve(faces, nbr, active, rho0, dt, h, cap, iterations, omega, stiffness, comps, native_sweeps)
     none = b * k * BLOCK_CELLS
     listed = torch.zeros(none + 1, dtype=torch.bool, device=faces.device)
     listed[g] = True  # slot `none`: unused list slots

@@ -116,7 +116,8 @@ class _NativeForwardRecomputedAdjoint(torch.autograd.Function):
             stencils: list = []
             faces, table, blocks, count = p2g_sparse(leaves[0], leaves[1], leaves[2], leaves[3], origin, h, r, k,
                                                      stencils)
-            _, field, _ = pressure_sparse(faces, table, blocks, count, target, dtt, h, r, *solve, active)
+            _, field, _ = pressure_sparse(faces, table, blocks, count, target, dtt, h, r, *solve, active,
+                                          native_sweeps=True)
             x1, v1 = g2p_sparse(leaves[0], leaves[1], field, table, leaves[3], origin, free, dtt, h, r, solve[3],
                                 stencils)
             outs = [(o, g) for o, g in ((x1, gx), (v1, gv)) if g is not None]
