@@ -2,8 +2,9 @@
 // `sweeps_adjoint` (schemas in sweeps_binding.h, arithmetic in sweeps.h). A sweep's slots in
 // parallel (at::parallel_for; each slot reads the previous φ, writes its own); the adjoint keeps φ
 // before each sweep (iterations × (L + 1) values), then runs the sweeps in reverse: the per-slot
-// part in parallel, the scatter of φ̄ into the neighbours in one thread, in index_add's order
-// (direction-major), so the sums are the torch definition's.
+// part in parallel, the scatter of φ̄ into the neighbours gathered by destination (each slot's
+// incoming entries in index_add's order, direction-major), in parallel, so the sums are the torch
+// definition's.
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
@@ -69,14 +70,36 @@ void run_adjoint(const SweepsInputs& in, int64_t iterations, T keep, T* g_src, T
   std::vector<T> g(g0, g0 + n1);
   std::vector<T> t(static_cast<size_t>(n1));
   std::vector<T> g_phi(static_cast<size_t>(n1));
+  // the scatter φ̄[nbr[e]] += w[e] t[e mod (L + 1)] by destination: each slot's incoming entries e in
+  // ascending order (a counting sort of nbr), so every slot sums in index_add's order, in parallel
+  const int64_t edges = kSweepDirs * n1;
+  std::vector<int64_t> start(static_cast<size_t>(n1 + 1), 0);
+  std::vector<int64_t> incoming(static_cast<size_t>(edges));
+  for (int64_t e = 0; e < edges; ++e) ++start[size_t(nbr[e] + 1)];
+  for (int64_t j = 0; j < n1; ++j) start[size_t(j + 1)] += start[size_t(j)];
+  std::vector<int64_t> from(static_cast<size_t>(edges)); // the slot i of each incoming entry (e mod (L + 1))
+  {
+    std::vector<int64_t> cursor(start.begin(), start.end() - 1);
+    for (int64_t e = 0; e < edges; ++e) {
+      const int64_t q = cursor[size_t(nbr[e])]++;
+      incoming[size_t(q)] = e;
+      from[size_t(q)] = e % n1;
+    }
+  }
   for (int64_t k = iterations - 1; k >= 0; --k) {
     const T* phi = history.data() + k * n1;
     at::parallel_for(0, n1, kGrain, [&](int64_t b, int64_t e) {
       for (int64_t i = b; i < e; ++i)
         sweep_cell_adjoint(i, n1, src, coef, w, nbr, phi, keep, g.data(), g_src, g_coef, g_w, t.data(), g_phi.data());
     });
-    for (int d = 0; d < kSweepDirs; ++d)
-      for (int64_t i = 0; i < n1; ++i) g_phi[size_t(nbr[d * n1 + i])] += w[d * n1 + i] * t[size_t(i)];
+    at::parallel_for(0, n1, kGrain, [&](int64_t b, int64_t e) {
+      for (int64_t j = b; j < e; ++j) {
+        T acc = g_phi[size_t(j)];
+        for (int64_t q = start[size_t(j)]; q < start[size_t(j + 1)]; ++q)
+          acc += w[incoming[size_t(q)]] * t[size_t(from[size_t(q)])];
+        g_phi[size_t(j)] = acc;
+      }
+    });
     g.swap(g_phi);
   }
 }
