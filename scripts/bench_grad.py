@@ -275,10 +275,11 @@ def render(records: list, memory: list, meta: dict, out: Path) -> None:
               f"native forward and adjoint: {', '.join(native_stages) or 'none'}; native forward, adjoint by the torch "
               f"definition recomputed in the backward pass: {', '.join(forward_only) or 'none'}; torch definition: "
               f"{', '.join(rest) or 'none'}. The dynamics-only scene is all native. In the every-stage scene the "
-              "backward is mostly the hair–hair grid's: its torch definition (P2G, the pressure sweeps over the "
-              "occupied cells, G2P) is run again with autograd and differentiated; a native adjoint of the grid is "
-              "what would close the gap (issue 25, item 1). The sum *forward (grad) + backward* is the cost of one "
-              "gradient frame for a training step."]
+              "backward is mostly the hair–hair grid's: its torch definition (P2G, the pressure's cell terms, G2P) "
+              "is run again with autograd and differentiated, its pressure sweeps by native kernels (`sweeps`, "
+              "`sweeps_adjoint`); native adjoints of P2G, the cell terms and G2P are what would close the gap "
+              "(issue 25, item 1). The sum *forward (grad) + backward* is the cost of one gradient frame for a "
+              "training step."]
     if memory:
         lines += ["", f"## Memory: one loss + backward of a {memory[0]['frames']}-frame rollout (every stage, "
                   f"{memory[0]['S']:,} × 32)", "",
