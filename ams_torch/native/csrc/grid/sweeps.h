@@ -46,15 +46,18 @@ template <class T>
 AMS_GRID_HD void sweep_cell_adjoint(int64_t i, int64_t n1, const T* src, const T* coef, const T* w,
                                     const int64_t* nbr, const T* phi, T keep, const T* g, T* g_src, T* g_coef,
                                     T* g_w, T* t, T* g_phi) {
-  const T n = sweep_neighbours(i, n1, w, nbr, phi);
+  T near[kSweepDirs]; // φ of the six neighbours, read once
+  for (int d = 0; d < kSweepDirs; ++d) near[d] = phi[nbr[d * n1 + i]];
+  T n = w[i] * near[0];
+  for (int d = 1; d < kSweepDirs; ++d) n = n + w[d * n1 + i] * near[d]; // sweep_neighbours' order
   const T pre = (src[i] + coef[i] * n) + keep * phi[i];
   const T a = pre >= T(0) ? g[i] : T(0);
   g_src[i] += a;
   g_coef[i] += a * n;
   const T ti = coef[i] * a;
   t[i] = ti;
-  for (int d = 0; d < kSweepDirs; ++d) g_w[d * n1 + i] += ti * phi[nbr[d * n1 + i]];
   g_phi[i] = keep * a;
+  for (int d = 0; d < kSweepDirs; ++d) g_w[d * n1 + i] += ti * near[d];
 }
 
 } // namespace grid
