@@ -1,7 +1,8 @@
 """The CUDA path on a real GPU (skipped without one): what the emulated tests cannot run and what the
 other CUDA tests never reach. Several blocks and 3+ scenes; 100k strands (checked against the CPU on a
 sample of strands: strands do not interact in the frame); N = 128 and 256; every collider and the
-grid ops on 3 scenes; float32 bounded against float64 (not an absolute 1e-5, which rounding reaches
+grid ops on 3 scenes; the collision stage's adjoint and the pressure sweeps with their adjoint; float32 bounded
+against float64 (not an absolute 1e-5, which rounding reaches
 at N = 40); opcheck of the collision and finish ops on CUDA; non-contiguous inputs; a side stream;
 a second GPU; P2G under torch's deterministic mode; torch.compile of the step; the emulator's
 self-test kernels on the device (its answers are the emulation's).
@@ -159,6 +160,63 @@ def test_cuda_every_collider_three_scenes():
     (xc, vc), (xg, vg) = out[F64, "cpu"], out[F64, DEVICE]
     assert rel(xg, xc) <= 1e-12 and rel(vg, vc) <= 1e-12
     assert bounded(out[F32, DEVICE][0], out[F32, "cpu"][0], xc) and bounded(out[F32, DEVICE][1], out[F32, "cpu"][1], vc)
+
+
+def _without_hollow(args: tuple) -> list:
+    """The collision op's arguments without hollow spheres (kernel type 3: no native adjoint)."""
+    args = list(args)
+    keep = [c for c in range(len(args[6]) // 3) if args[6][3 * c] != 3]
+    args[4] = [t for c in keep for t in args[4][4 * c:4 * c + 4]]
+    args[5] = [t for c in keep for t in args[5][4 * c:4 * c + 4]]
+    args[6] = [i for c in keep for i in args[6][3 * c:3 * c + 3]]
+    args[7] = [f for c in keep for f in args[7][3 * c:3 * c + 3]]
+    return args
+
+
+def test_cuda_collide_adjoint_three_scenes():
+    """The collision stage's adjoint (one thread per strand, C × 19 pose adjoints per strand) on the
+    device against the CPU kernel: every native-adjoint collider together, 3 scenes × 200 strands."""
+    out = {}
+    for dtype in (F64, F32):
+        for device in ("cpu", DEVICE):
+            sim, x, v, head = _collide_case(device, dtype)
+            world = resolve_world_poses(sim.colliders, head, None)
+            args = _without_hollow(native.collision_arguments(sim.model, sim.config, x, v, head, world))
+            g = torch.Generator().manual_seed(8)
+            gx, gv = (torch.randn(x.shape, generator=g, dtype=F64).to(device=device, dtype=dtype) for _ in range(2))
+            ns = backend("collide") if device == DEVICE else built_native("cpu")
+            out[dtype, device] = [t.cpu() for t in ns.collide_adjoint(*args, gx, gv)]
+    for c, d in zip(out[F64, "cpu"], out[F64, DEVICE]):
+        assert float((c - d).abs().max()) <= 1e-12 * max(float(c.abs().max()), 1.0)
+    for ref, c32, d32 in zip(out[F64, "cpu"], out[F32, "cpu"], out[F32, DEVICE]):
+        assert float((d32.double() - ref).abs().max()) <= 2 * float((c32.double() - ref).abs().max()) + \
+            8 * EPS32 * max(float(ref.abs().max()), 1.0)
+
+
+@pytest.mark.parametrize("dtype", [F64, F32])
+def test_cuda_pressure_sweeps_and_adjoint(dtype):
+    """The pressure sweeps (a launch per sweep) and their adjoint (atomicAdd scatter) on the device
+    against the CPU kernels, 50 sweeps over 60k slots."""
+    g = torch.Generator().manual_seed(9)
+    n1 = 60001
+    src = (torch.rand(n1, generator=g, dtype=F64) - 0.3).to(dtype)
+    coef = torch.rand(n1, generator=g, dtype=F64).to(dtype)
+    w = (0.2 * torch.rand(6, n1, generator=g, dtype=F64)).to(dtype)
+    nbr = torch.randint(0, n1, (6, n1), generator=g)
+    nbr[:, -1] = n1 - 1
+    src[-1] = coef[-1] = 0
+    w[:, -1] = 0
+    nbr = nbr.reshape(-1)
+    gout = torch.randn(n1, generator=g, dtype=F64).to(dtype)
+    cpu, dev = built_native("cpu"), backend("grid")
+    on = lambda *ts: [t.to(DEVICE) for t in ts]  # noqa: E731
+    want = cpu.sweeps(src, coef, w, nbr, 50, 0.6)
+    got = dev.sweeps(*on(src, coef, w, nbr), 50, 0.6).cpu()
+    bound = 1e-12 if dtype == F64 else 64 * EPS32
+    assert float((got - want).abs().max()) <= bound * max(float(want.abs().max()), 1.0)
+    for c, d in zip(cpu.sweeps_adjoint(src, coef, w, nbr, 50, 0.6, gout),
+                    dev.sweeps_adjoint(*on(src, coef, w, nbr), 50, 0.6, gout.to(DEVICE))):
+        assert float((c - d.cpu()).abs().max()) <= bound * max(float(c.abs().max()), 1.0), rel(d.cpu(), c)
 
 
 def test_cuda_opcheck_collisions_and_finish():
