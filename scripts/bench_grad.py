@@ -326,7 +326,7 @@ def main(argv=None) -> int:
     ap.add_argument("--resolution", type=int, default=64, help="hair–hair grid of every_stage")
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--case-cap", type=float, default=120.0, help="seconds per case before stopping early")
-    ap.add_argument("--torch-max-strands", type=int, default=1000, help="skip the torch path above this")
+    ap.add_argument("--torch-max-strands", type=int, default=10000, help="skip the torch path above this")
     ap.add_argument("--memory-strands", type=int, default=1000)
     ap.add_argument("--memory-frames", type=int, default=120)
     ap.add_argument("--memory-checkpoints", type=int, nargs="*", default=None,
