@@ -431,3 +431,29 @@ def test_contact_does_not_leave_stretched_edges(head_collider):
     assert result[1] < 0.25 * result[0] and result[2] <= result[1] + 1e-6
     with pytest.raises(ValueError, match="collision_inextensibility"):
         Params(collision_inextensibility=-1)
+
+
+@pytest.mark.parametrize("kind", ["sphere", "mesh", "all"])
+def test_compacted_response_equals_the_masked_one(kind, monkeypatch):
+    """Eager on the CPU the response runs on the inside particles only (response._compacts); the
+    result is the masked dense form's for one scene and for three sharing one pose: the same
+    operations per particle, so equal up to the last bit of a few values (ATen rounds the same
+    operation by its vectorised loop or its scalar tail, which the gathered rows' length moves)."""
+    import ams_torch.stages.collide.response as response
+    from native_cases import make_case
+
+    from ams_torch.stages.collide import collide, resolve_world_poses
+
+    sim, x, v, head, _ = make_case(kind, scenes=None, strands=15)
+    xb, vb = torch.stack([x, x + 0.003, x - 0.002]), torch.stack([v, 0.5 * v, -v])
+    world = resolve_world_poses(sim.colliders, head, None)
+    free = ~sim.model.pinned
+    for xs, vs in ((x, v), (xb, vb)):
+        assert response._compacts(xs.reshape(-1, 1, 3), world[0].rotation.reshape(1, 3, 3))
+        got = collide(xs, vs, 1 / 60, list(sim.colliders), world, free=free)
+        with monkeypatch.context() as m:
+            m.setattr(response, "_compacts", lambda *a: False)
+            want = collide(xs, vs, 1 / 60, list(sim.colliders), world, free=free)
+        assert not torch.equal(want[1], vs)  # some particle is in contact
+        for a, b in zip(got, want):
+            assert float((a - b).abs().max()) <= 4 * torch.finfo(a.dtype).eps * float(b.abs().max())
