@@ -190,6 +190,35 @@ def make_case(kind: str, dtype=F64, scenes=None, strands=15, particles=10, seed=
 KINDS = ["sphere", "capsule", "plane", "hollow", "hollow_closed", "mesh", "all"]
 
 
+def without_hollow(args) -> list:
+    """The collision op's arguments (``native.collision_arguments``) without their hollow spheres
+    (kernel type 3: no native adjoint)."""
+    args = list(args)
+    keep = [c for c in range(len(args[6]) // 3) if args[6][3 * c] != 3]
+    args[4] = [t for c in keep for t in args[4][4 * c:4 * c + 4]]
+    args[5] = [t for c in keep for t in args[5][4 * c:4 * c + 4]]
+    args[6] = [i for c in keep for i in args[6][3 * c:3 * c + 3]]
+    args[7] = [f for c in keep for f in args[7][3 * c:3 * c + 3]]
+    return args
+
+
+def sweeps_case(slots: int, seed: int, dtype=F64) -> tuple:
+    """Inputs of the pressure sweeps (``sparse._sweeps``, ops ``sweeps`` / ``sweeps_adjoint``): src,
+    coef (L + 1,), w (6, L + 1), nbr (6 (L + 1),) int64 random list slots, the last slot a zero
+    (src = coef = w = 0, its own neighbour), and an output adjoint g (L + 1,) zero on that slot."""
+    g = torch.Generator().manual_seed(seed)
+    src = (torch.rand(slots, generator=g, dtype=F64) - 0.3).to(dtype)
+    coef = torch.rand(slots, generator=g, dtype=F64).to(dtype)
+    w = (0.2 * torch.rand(6, slots, generator=g, dtype=F64)).to(dtype)
+    nbr = torch.randint(0, slots, (6, slots), generator=g)
+    nbr[:, -1] = slots - 1
+    src[-1] = coef[-1] = 0
+    w[:, -1] = 0
+    gout = torch.randn(slots, generator=g, dtype=F64).to(dtype)
+    gout[-1] = 0
+    return src, coef, w, nbr.reshape(-1), gout
+
+
 # -- the hair–hair grid ----------------------------------------------------------------------------
 
 MASS = 1e-6

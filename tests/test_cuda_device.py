@@ -18,7 +18,8 @@ import pytest
 import torch
 from helpers import built_native, rel
 from native_cases import (F32, F64, case_scene, expected_warp_ops, frame_args, make_case, make_colliders, make_scene,
-                          native_frame, native_system, set_pinned, solve_args, squeeze_scene, tol as grid_tol)
+                          native_frame, native_system, set_pinned, solve_args, squeeze_scene, sweeps_case,
+                          tol as grid_tol, without_hollow)
 
 import ams_torch
 from ams_torch.sim import native
@@ -162,17 +163,6 @@ def test_cuda_every_collider_three_scenes():
     assert bounded(out[F32, DEVICE][0], out[F32, "cpu"][0], xc) and bounded(out[F32, DEVICE][1], out[F32, "cpu"][1], vc)
 
 
-def _without_hollow(args: tuple) -> list:
-    """The collision op's arguments without hollow spheres (kernel type 3: no native adjoint)."""
-    args = list(args)
-    keep = [c for c in range(len(args[6]) // 3) if args[6][3 * c] != 3]
-    args[4] = [t for c in keep for t in args[4][4 * c:4 * c + 4]]
-    args[5] = [t for c in keep for t in args[5][4 * c:4 * c + 4]]
-    args[6] = [i for c in keep for i in args[6][3 * c:3 * c + 3]]
-    args[7] = [f for c in keep for f in args[7][3 * c:3 * c + 3]]
-    return args
-
-
 def test_cuda_collide_adjoint_three_scenes():
     """The collision stage's adjoint (one thread per strand, C × 19 pose adjoints per strand) on the
     device against the CPU kernel: every native-adjoint collider together, 3 scenes × 200 strands."""
@@ -181,7 +171,7 @@ def test_cuda_collide_adjoint_three_scenes():
         for device in ("cpu", DEVICE):
             sim, x, v, head = _collide_case(device, dtype)
             world = resolve_world_poses(sim.colliders, head, None)
-            args = _without_hollow(native.collision_arguments(sim.model, sim.config, x, v, head, world))
+            args = without_hollow(native.collision_arguments(sim.model, sim.config, x, v, head, world))
             g = torch.Generator().manual_seed(8)
             gx, gv = (torch.randn(x.shape, generator=g, dtype=F64).to(device=device, dtype=dtype) for _ in range(2))
             ns = backend("collide") if device == DEVICE else built_native("cpu")
@@ -197,17 +187,7 @@ def test_cuda_collide_adjoint_three_scenes():
 def test_cuda_pressure_sweeps_and_adjoint(dtype):
     """The pressure sweeps (a launch per sweep) and their adjoint (atomicAdd scatter) on the device
     against the CPU kernels, 50 sweeps over 60k slots."""
-    g = torch.Generator().manual_seed(9)
-    n1 = 60001
-    src = (torch.rand(n1, generator=g, dtype=F64) - 0.3).to(dtype)
-    coef = torch.rand(n1, generator=g, dtype=F64).to(dtype)
-    w = (0.2 * torch.rand(6, n1, generator=g, dtype=F64)).to(dtype)
-    nbr = torch.randint(0, n1, (6, n1), generator=g)
-    nbr[:, -1] = n1 - 1
-    src[-1] = coef[-1] = 0
-    w[:, -1] = 0
-    nbr = nbr.reshape(-1)
-    gout = torch.randn(n1, generator=g, dtype=F64).to(dtype)
+    src, coef, w, nbr, gout = sweeps_case(60001, 9, dtype)
     cpu, dev = built_native("cpu"), backend("grid")
     on = lambda *ts: [t.to(DEVICE) for t in ts]  # noqa: E731
     want = cpu.sweeps(src, coef, w, nbr, 50, 0.6)

@@ -31,7 +31,7 @@ import pytest
 import torch
 from helpers import built_native, rel
 from native_cases import (FRAME_CASES, case_scene, expected_warp_ops, frame_args, make_case, native_frame,
-                          native_system, solve_args, squeeze_scene, strand_system, tol as grid_tol)
+                          native_system, solve_args, squeeze_scene, strand_system, sweeps_case, tol as grid_tol)
 
 from ams_torch.sim import native
 from ams_torch.native import build as _native
@@ -229,17 +229,7 @@ def test_collide_adjoint(cpu, emu, emu_env, kind):
 def test_pressure_sweeps_and_adjoint(cpu, emu, emu_env, dtype):
     """The pressure sweeps (a launch per sweep) and their adjoint (per-slot launch, atomicAdd
     scatter) against the CPU kernels."""
-    g = torch.Generator().manual_seed(6)
-    n1 = 1500
-    src = (torch.rand(n1, generator=g, dtype=F64) - 0.3).to(dtype)
-    coef = torch.rand(n1, generator=g, dtype=F64).to(dtype)
-    w = (0.2 * torch.rand(6, n1, generator=g, dtype=F64)).to(dtype)
-    nbr = torch.randint(0, n1, (6, n1), generator=g)
-    nbr[:, -1] = n1 - 1
-    src[-1] = coef[-1] = 0
-    w[:, -1] = 0
-    nbr = nbr.reshape(-1)
-    gout = torch.randn(n1, generator=g, dtype=F64).to(dtype)
+    src, coef, w, nbr, gout = sweeps_case(1500, 6, dtype)
     bound = 1e-12 if dtype == F64 else 64 * EPS32
     for iterations in (0, 1, 7):
         phi_c = cpu["cpu"].sweeps(src, coef, w, nbr, iterations, 0.6)

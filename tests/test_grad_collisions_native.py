@@ -15,7 +15,7 @@ from __future__ import annotations
 import pytest
 import torch
 from helpers import built_native, rel
-from native_cases import make_case
+from native_cases import make_case, without_hollow
 
 import ams_torch as at
 from ams_torch.sim import native
@@ -42,17 +42,6 @@ def _arguments(sim, x, v, head, grad=True):
     return args
 
 
-def _without_hollow(args):
-    """The op's arguments without their hollow spheres (kernel type 3: no native adjoint)."""
-    args = list(args)
-    keep = [c for c in range(len(args[6]) // 3) if args[6][3 * c] != 3]
-    args[4] = [t for c in keep for t in args[4][4 * c:4 * c + 4]]
-    args[5] = [t for c in keep for t in args[5][4 * c:4 * c + 4]]
-    args[6] = [i for c in keep for i in args[6][3 * c:3 * c + 3]]
-    args[7] = [f for c in keep for f in args[7][3 * c:3 * c + 3]]
-    return args
-
-
 def _both(args, seed=0):
     g = torch.Generator().manual_seed(seed)
     gx = torch.randn(args[0].shape, generator=g, dtype=args[0].dtype)
@@ -67,7 +56,7 @@ def _both(args, seed=0):
 def test_native_adjoint_equals_the_torch_definition(kind, rounds):
     scene = "all" if kind == "all_but_hollow" else kind
     sim, x, v, head, _ = make_case(scene, scenes=2, strands=15, rounds=rounds)
-    args = _without_hollow(_arguments(sim, x, v, head))
+    args = without_hollow(_arguments(sim, x, v, head))
     assert len(args[6]) == 3 * (4 if kind == "all_but_hollow" else 1)
     nat, ref = _both(args)
     assert len(nat) == len(ref)
@@ -170,7 +159,7 @@ def test_gradient_frames_run_the_native_adjoint(monkeypatch, contact):
 
 def test_gradcheck_of_the_op():
     sim, x, v, head, _ = make_case("all", scenes=None, strands=4, particles=6, rounds=1)
-    args = _without_hollow(_arguments(sim, x, v, head))
+    args = without_hollow(_arguments(sim, x, v, head))
 
     def fn(x, v, r, t):
         a = list(args)

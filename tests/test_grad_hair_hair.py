@@ -11,7 +11,7 @@ from __future__ import annotations
 import pytest
 import torch
 from helpers import built_native, rel
-from native_cases import squeeze_scene
+from native_cases import squeeze_scene, sweeps_case
 
 from ams_torch.geometry.pose import Pose
 from ams_torch.stages.hair_hair import hair_hair_stage
@@ -100,22 +100,11 @@ def test_native_sweeps_and_their_adjoint_equal_the_definition(dtype):
     from ams_torch.stages.hair_hair import sparse
 
     ns = native_namespace("grid", torch.zeros(1))
-    g = torch.Generator().manual_seed(4)
-    n1 = 3001
-    src = (torch.rand(n1, generator=g, dtype=F64) - 0.3).to(dtype)
-    coef = torch.rand(n1, generator=g, dtype=F64).to(dtype)
-    w = (0.2 * torch.rand(6, n1, generator=g, dtype=F64)).to(dtype)
-    nbr = torch.randint(0, n1, (6, n1), generator=g)
-    nbr[:, -1] = n1 - 1
-    src[-1] = coef[-1] = 0
-    w[:, -1] = 0
-    nbr = nbr.reshape(-1)
+    src, coef, w, nbr, gout = sweeps_case(3001, 4, dtype)
     got = ns.sweeps(src, coef, w, nbr, 30, 0.6)
     want = sparse._sweeps(src, coef, w, nbr, 30, 0.6)
     tol = 1e-12 if dtype == F64 else 1e-5
     assert float(want.abs().max()) > 0 and rel(got, want) <= tol, rel(got, want)
-    gout = torch.randn(n1, generator=g, dtype=F64).to(dtype)
-    gout[-1] = 0
     leaves = [t.clone().requires_grad_() for t in (src, coef, w)]
     ref = torch.autograd.grad(sparse._sweeps(leaves[0], leaves[1], leaves[2], nbr, 30, 0.6), leaves, gout)
     nat = ns.sweeps_adjoint(src, coef, w, nbr, 30, 0.6, gout)

@@ -11,6 +11,7 @@
 
 #include "collide/collide_adjoint.h"
 #include "collide/collide_adjoint_cuda.h"
+#include "collide/collide_table_cuda.cuh"
 #include "common/launch_cuda.cuh"
 #include "common/transpose_cuda.cuh"
 
@@ -19,19 +20,6 @@ namespace collide {
 namespace {
 
 constexpr int kAdjointThreads = 64;
-constexpr int kPrepareThreads = 64;
-
-int64_t table_elems(int64_t scenes, int64_t colliders, int64_t elem_bytes, int64_t prepared_bytes) {
-  const int64_t bytes = scenes * colliders * prepared_bytes;
-  return ((bytes + 255) / 256 * 256) / elem_bytes; // keep what follows 256-byte aligned
-}
-
-template <class T>
-__global__ void prepare_kernel(const CollideArgs<T> args, Prepared<T>* table) {
-  const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (i >= args.scenes * args.count) return;
-  prepare_collider(args.colliders[i % args.count], i / args.count, table[i]);
-}
 
 template <class T>
 __global__ void __launch_bounds__(kAdjointThreads) adjoint_kernel(const CollideArgs<T> args, const CollideSettings cfg,
@@ -81,9 +69,7 @@ cudaError_t collide_adjoint_cuda(const CollideArgs<T>& args, const CollideSettin
   T* lam = xb_new + 3 * N * G;
   T* rest = lam + 3 * N * G;
   T* edge = rest + 3 * N * S;
-  if (B * C > 0)
-    prepare_kernel<T><<<unsigned((B * C + kPrepareThreads - 1) / kPrepareThreads), kPrepareThreads, 0, stream>>>(
-        args, table);
+  launch_prepare(args, table, stream);
   frame::TransposeBatch<T> in; // snapshot 0 of the history: x then v
   in.add(args.x, hist, G, 3 * N);
   in.add(args.v, hist + 3 * N * G, G, 3 * N);
