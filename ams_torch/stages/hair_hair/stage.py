@@ -89,10 +89,13 @@ def _use_native(backend: str, tensors, dtype) -> bool:
 
 class _NativeForwardRecomputedAdjoint(torch.autograd.Function):
     """The grid part (P2G → pressure → G2P) in a gradient frame: forward by the native kernels (no
-    graph kept), backward the torch definition's vector-Jacobian product, recomputed from the saved
-    inputs (``sparse.py``: exact for the definition; the forward values are the kernels', which equal
-    it to rounding). Inputs as the stage's flattened ones: xf, vf (B, P, 3), m (B, P), frame,
-    origin, target, dt, free; ``meta`` = (h, R, K, solve, active capacity). Returns x', v', overflow."""
+    graph kept); backward by the native adjoint kernels where the library has them
+    (``p2g_adjoint``, ``pressure_adjoint``, ``g2p_adjoint``: :func:`_native_adjoint`), otherwise the
+    torch definition's vector-Jacobian product recomputed from the saved inputs (``sparse.py``,
+    its sweeps by the native ``sweeps_adjoint``). Both are the derivative of the definition (the
+    forward values are the kernels', which equal it to rounding). Inputs as the stage's flattened
+    ones: xf, vf (B, P, 3), m (B, P), frame, origin, target, dt, free; ``meta`` = (h, R, K, solve,
+    active capacity). Returns x', v', overflow."""
 
     @staticmethod
     def forward(ctx, xf, vf, m, frame, origin, target, dtt, free, meta):
@@ -109,23 +112,88 @@ class _NativeForwardRecomputedAdjoint(torch.autograd.Function):
     @staticmethod
     def backward(ctx, gx, gv, _):
         xf, vf, m, frame, origin, target, dtt, free = ctx.saved_tensors
-        h, r, k, solve, active = ctx.meta
         needs = ctx.needs_input_grad[:4]
-        leaves = [t.detach().requires_grad_(n) for t, n in zip((xf, vf, m, frame), needs)]
-        with torch.enable_grad():
-            stencils: list = []
-            faces, table, blocks, count = p2g_sparse(leaves[0], leaves[1], leaves[2], leaves[3], origin, h, r, k,
-                                                     stencils)
-            _, field, _ = pressure_sparse(faces, table, blocks, count, target, dtt, h, r, *solve, active,
-                                          native_sweeps=True)
-            x1, v1 = g2p_sparse(leaves[0], leaves[1], field, table, leaves[3], origin, free, dtt, h, r, solve[3],
-                                stencils)
-            outs = [(o, g) for o, g in ((x1, gx), (v1, gv)) if g is not None]
-            wrt = [t for t, n in zip(leaves, needs) if n]
-            grads = iter(torch.autograd.grad([o for o, _ in outs], wrt, [g for _, g in outs], allow_unused=True))
-        res = [next(grads) if n else None for n in needs]
-        res = [torch.zeros_like(t) if (n and g is None) else g for g, n, t in zip(res, needs, leaves)]
+        ns = native_adjoint_namespace(xf)
+        run = _native_adjoint if ns is not None else _recomputed_adjoint
+        res = run(ns, (xf, vf, m, frame, origin, target, dtt, free), ctx.meta, needs, gx, gv)
         return (*res, None, None, None, None, None)
+
+
+def native_adjoint_namespace(x: torch.Tensor):
+    """The native library holding the grid's adjoint kernels for ``x``'s device and dtype, or None
+    (not built, or no such kernels for that device: the CUDA library has none yet)."""
+    from ams_torch.native.dispatch import native_namespace
+
+    ns = native_namespace("grid_adjoint", x)
+    return ns if ns is not None and hasattr(ns, "pressure_adjoint") else None
+
+
+def _recomputed_adjoint(ns, saved, meta, needs, gx, gv):
+    """The torch definition's vector-Jacobian product (autograd on ``sparse.py``, recomputed)."""
+    xf, vf, m, frame, origin, target, dtt, free = saved
+    h, r, k, solve, active = meta
+    leaves = [t.detach().requires_grad_(n) for t, n in zip((xf, vf, m, frame), needs)]
+    with torch.enable_grad():
+        stencils: list = []
+        faces, table, blocks, count = p2g_sparse(leaves[0], leaves[1], leaves[2], leaves[3], origin, h, r, k, stencils)
+        _, field, _ = pressure_sparse(faces, table, blocks, count, target, dtt, h, r, *solve, active,
+                                      native_sweeps=True)
+        x1, v1 = g2p_sparse(leaves[0], leaves[1], field, table, leaves[3], origin, free, dtt, h, r, solve[3],
+                            stencils)
+        outs = [(o, g) for o, g in ((x1, gx), (v1, gv)) if g is not None]
+        wrt = [t for t, n in zip(leaves, needs) if n]
+        grads = iter(torch.autograd.grad([o for o, _ in outs], wrt, [g for _, g in outs], allow_unused=True))
+    res = [next(grads) if n else None for n in needs]
+    return [torch.zeros_like(t) if (n and g is None) else g for g, n, t in zip(res, needs, leaves)]
+
+
+def _native_adjoint(ns, saved, meta, needs, gx, gv):
+    """The grid part's vector-Jacobian product by the native adjoint kernels.
+
+    The change of frame (``transfer.to_head``) is differentiated by autograd on its torch
+    definition; in the head frame the kernels recompute P2G (native ``p2g`` with the identity
+    frame, so its stencils are those of the adjoints) and the pressure's field, then run the
+    adjoints of G2P (FLIP/PIC blend; ``g2p_adjoint``), of the pressure (the face field, the
+    sweeps, the cell terms; ``pressure_adjoint``) and of P2G (``p2g_adjoint``). The rotation back
+    to the world (``transfer.apply_change``) is differentiated here: x' = x + R (dt Δv),
+    v' = v + R Δv with Δv zero for pinned particles."""
+    xf, vf, m, frame, origin, target, dtt, free = saved
+    h, r, k, solve, active = meta
+    iterations, omega, stiffness, pic = solve
+    gx = torch.zeros_like(xf) if gx is None else gx
+    gv = torch.zeros_like(vf) if gv is None else gv
+    leaves = [t.detach().requires_grad_(n) for t, n in zip((xf, vf, frame), (needs[0], needs[1], needs[3]))]
+    with torch.enable_grad():
+        xl, vl = to_head(leaves[2], leaves[0], leaves[1])
+    xld, vld = xl.detach().contiguous(), vl.detach().contiguous()
+    md, oc = m.detach().contiguous(), origin.contiguous()
+    b, p = xf.shape[:2]
+    ident = torch.zeros(b, 6, 3, dtype=xf.dtype, device=xf.device)
+    ident[:, :3] = torch.eye(3, dtype=xf.dtype, device=xf.device)
+    faces, table, blocks, count = ns.p2g(xld, vld, md, ident, oc, h, r, k)
+    _, field, _ = ns.pressure(faces, table, blocks, count, target, dtt, h, r, iterations, omega, stiffness, pic,
+                              active)
+    rot = frame.detach()[:, :3]
+    world = dtt * gx + gv  # adjoint of R Δv
+    free_p = free.to(device=xf.device, dtype=torch.bool).repeat(p // free.shape[0])[None, :, None]
+    g_dv = torch.where(free_p, torch.einsum("bij,bpi->bpj", rot, world), torch.zeros_like(world)).contiguous()
+    g_xl2, g_vl2, g_field, dv = ns.g2p_adjoint(xld, vld, field, table, oc, g_dv, h, r, pic)
+    g_faces = ns.pressure_adjoint(faces, table, blocks, count, target, dtt, h, r, iterations, omega, stiffness, pic,
+                                  g_field)
+    g_xl1, g_vl1, g_m = ns.p2g_adjoint(xld, vld, md, oc, table, g_faces, h, r)
+    wrt = [t for t in leaves if t.requires_grad]
+    got = iter(torch.autograd.grad((xl, vl), wrt, (g_xl1 + g_xl2, g_vl1 + g_vl2), allow_unused=True)
+               if wrt else ())
+    g_x, g_v, g_frame = (next(got) if t.requires_grad else None for t in leaves)
+    if needs[0]:
+        g_x = gx if g_x is None else g_x + gx
+    if needs[1]:
+        g_v = gv if g_v is None else g_v + gv
+    if needs[3]:
+        g_frame = torch.zeros_like(frame) if g_frame is None else g_frame.clone()
+        dv = torch.where(free_p, dv, torch.zeros_like(dv))
+        g_frame[:, :3] += torch.einsum("bpi,bpj->bij", world, dv)
+    return [g_x, g_v, g_m if needs[2] else None, g_frame]
 
 
 def hair_hair_stage(grid: Optional[HairHairGrid], x: torch.Tensor, v: torch.Tensor, mass,
