@@ -98,7 +98,8 @@ GROUPS = {
                         ("collide/collide_adjoint_cuda_binding.cpp", "collide/collide_adjoint_cuda.cu")),
     "grid": (("grid/grid_cpu.cpp", "grid/sweeps_cpu.cpp"),
              ("grid/grid_cuda_binding.cpp", "grid/grid_cuda.cu", "grid/sweeps_cuda_binding.cpp", "grid/sweeps_cuda.cu")),
-    "grid_adjoint": (("grid/grid_adjoint_cpu.cpp",), ()),
+    "grid_adjoint": (("grid/grid_adjoint_cpu.cpp",),
+                     ("grid/grid_adjoint_cuda_binding.cpp", "grid/grid_adjoint_cuda.cu")),
 }
 
 # backend -> (extension name, sources compiled, headers they read (relative to csrc/; left empty here),
@@ -165,12 +166,12 @@ GRADIENT_STAGES = {
                 "collision kernels without colliders and their adjoint; the one-particle angular form "
                 "(angular_reaction=False), a callable external force or a rest shape requiring grad: the torch "
                 "definition",
-    "hair_hair": "native forward (p2g / pressure / g2p of the cpu / cuda library); adjoint on the CPU: native "
-                 "(p2g_adjoint / pressure_adjoint / g2p_adjoint: P2G, the pressure's face field, sweeps and cell "
-                 "terms, G2P with the FLIP/PIC blend, recomputing the forward in the backward pass; the change of "
-                 "frame by autograd on its torch definition); on CUDA (no adjoint kernels yet): the torch "
-                 "definition's vector-Jacobian product recomputed from the stage's inputs, its pressure sweeps by "
-                 "native kernels (sweeps / sweeps_adjoint); nothing of the grid kept between the passes",
+    "hair_hair": "native forward (p2g / pressure / g2p of the cpu / cuda library) and adjoint (p2g_adjoint / "
+                 "pressure_adjoint / g2p_adjoint: P2G, the pressure's face field, sweeps and cell terms, G2P with "
+                 "the FLIP/PIC blend; the backward pass recomputes the grid from the stage's inputs, nothing of it "
+                 "kept between the passes; the change of frame by autograd on its torch definition); on CUDA under "
+                 "torch's deterministic mode: the torch definition's vector-Jacobian product recomputed, its "
+                 "pressure sweeps by native kernels (sweeps / sweeps_adjoint)",
     "collisions": "native forward and adjoint (collide / collide_adjoint of the cpu / cuda library) for "
                   "spheres, capsules, planes and meshes with at most 16 push-out passes; gradients reach x, v, "
                   "the colliders' world poses and velocities (the head's pose through colliders that follow it), "

@@ -4,7 +4,7 @@ smoke tests of the fused ops' backends.
 :func:`resolve_backend` is the simulator's backend decision: it builds (or loads) every backend the
 configuration needs, raises for ``backend="native"`` naming each one that cannot be had and why,
 and otherwise falls back to the torch definition with one warning per backend
-(:mod:`ams_torch.native.build`). The probes registered here (frame, collisions, the collisions' adjoint, grid) are what
+(:mod:`ams_torch.native.build`). The probes registered here (frame, collisions, the collisions' adjoint, grid, the grid's adjoint) are what
 ``build`` runs right after loading such a backend: one tiny call compared with the torch definition.
 """
 from __future__ import annotations
@@ -181,7 +181,35 @@ def _grid(ns, device) -> None:
     probes.close(densify(got[0], got[2], 4), densify(want[0], want[2], 4), "p2g")
 
 
+
+def _grid_adjoint(ns, device) -> None:
+    """p2g_adjoint against a central difference of the torch definition (sparse.p2g_sparse) along
+    one direction of the positions and velocities (no autograd, as ``_collide_adjoint``)."""
+    g = torch.Generator().manual_seed(0)
+    xl = (0.3 * torch.rand(1, 6, 3, generator=g, dtype=F64) + 0.1).to(device)
+    vl = torch.randn(1, 6, 3, generator=g, dtype=F64).to(device)
+    m = torch.full((1, 6), 1e-3, dtype=F64, device=device)
+    frame = torch.zeros(1, 6, 3, dtype=F64, device=device)
+    frame[0, :3] = torch.eye(3, dtype=F64, device=device)
+    origin = torch.zeros(3, dtype=F64, device=device)
+    faces, table, _, _ = p2g_sparse(xl, vl, m, frame, origin, 0.125, 4, 8)
+    gf = torch.cos(torch.arange(faces.numel(), dtype=F64, device=device)).reshape(faces.shape)
+    got = ns.p2g_adjoint(xl, vl, m, origin, table, gf, 0.125, 4)
+    dx = torch.linspace(0.5, -1.0, xl.numel(), dtype=F64, device=device).reshape(xl.shape)
+    dv = torch.sin(torch.arange(xl.numel(), dtype=F64, device=device)).reshape(xl.shape)
+    h, vals = 1e-7, []
+    for sign in (1.0, -1.0):
+        f = p2g_sparse(xl + sign * h * dx, vl + sign * h * dv, m, frame, origin, 0.125, 4, 8)[0]
+        vals.append(float((gf * f).sum()))
+    fd = (vals[0] - vals[1]) / (2 * h)
+    ad = float((got[0] * dx).sum() + (got[1] * dv).sum())
+    if not abs(ad - fd) <= 1e-6 * max(abs(fd), 1e-30):
+        raise AssertionError(f"p2g_adjoint: directional derivative {ad!r}, central difference of the torch "
+                             f"definition {fd!r}")
+
+
 probes.register("frame", _frame)
 probes.register("collide", _collide)
 probes.register("collide_adjoint", _collide_adjoint)
 probes.register("grid", _grid)
+probes.register("grid_adjoint", _grid_adjoint)

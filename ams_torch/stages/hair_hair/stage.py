@@ -121,9 +121,12 @@ class _NativeForwardRecomputedAdjoint(torch.autograd.Function):
 
 def native_adjoint_namespace(x: torch.Tensor):
     """The native library holding the grid's adjoint kernels for ``x``'s device and dtype, or None
-    (not built, or no such kernels for that device: the CUDA library has none yet)."""
+    (not built, or a library without them; on CUDA under torch's deterministic mode, whose float
+    atomics would sum in a varying order: the recomputed torch definition instead)."""
     from ams_torch.native.dispatch import native_namespace
 
+    if x.is_cuda and torch.are_deterministic_algorithms_enabled():
+        return None  # the CUDA kernels' float atomics (P2G, G2P's adjoint) sum in a varying order
     ns = native_namespace("grid_adjoint", x)
     return ns if ns is not None and hasattr(ns, "pressure_adjoint") else None
 

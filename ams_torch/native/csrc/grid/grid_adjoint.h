@@ -259,5 +259,15 @@ AMS_GRID_HD void face_field_adjoint(const T* faces, const T* phi, int64_t slot, 
   *g_mass = gm;
 }
 
+// The face-field adjoint's φ̄ term of face (slot, c, l): the adjoint of φ_hi (φ_lo gets its negative).
+template <class T>
+AMS_GRID_HD T face_phi_adjoint(const T* faces, const T* g_field, int64_t slot, int c, int l, const PressureConsts<T>& q) {
+  T mf, pf;
+  face_values(faces, slot, c, l, &mf, &pf);
+  if (!(mf > q.eps)) return T(0);
+  const T inv = q.h3 / mf;
+  return -g_field[(slot * 3 + c) * kBlockCells + l] * inv / q.h;
+}
+
 } // namespace grid
 } // namespace ams_torch

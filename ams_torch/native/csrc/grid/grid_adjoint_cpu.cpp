@@ -228,16 +228,6 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> g2p_adjoint_cpu(
 }
 
 // ---- pressure ---------------------------------------------------------------------------------
-// The face-field adjoint's φ̄ term of face (slot, c, l): the adjoint of φ_hi (φ_lo gets its negative).
-template <class T>
-T face_phi_adjoint(const T* faces, const T* g_field, int64_t slot, int c, int l, const PressureConsts<T>& q) {
-  T mf, pf;
-  face_values(faces, slot, c, l, &mf, &pf);
-  if (!(mf > q.eps)) return T(0);
-  const T inv = q.h3 / mf;
-  return -g_field[(slot * 3 + c) * kBlockCells + l] * inv / q.h;
-}
-
 template <class T>
 void pressure_adjoint_impl(const T* faces, const int32_t* table, const int32_t* blocks, const int32_t* count, T rho0,
                            T dt, const T* g_field, T* g_faces, int64_t B, int64_t r, int64_t K, double cell_size,
