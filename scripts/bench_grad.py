@@ -162,8 +162,10 @@ def _rss(field: str) -> int:
         return next(int(line.split()[1]) * 1024 for line in f if line.startswith(field + ":"))
 
 
-def memory_probe(strands: int, frames: int, every: int, path: str, device: str, dtype: str, resolution: int) -> dict:
-    """One loss + backward of a ``frames`` rollout (every stage) checkpointed every ``every`` frames."""
+def memory_probe(strands: int, frames: int, every: int, path: str, device: str, dtype: str, resolution: int,
+                 frame_checkpoints: bool = False) -> dict:
+    """One loss + backward of a ``frames`` rollout (every stage) checkpointed every ``every`` frames
+    (``frame_checkpoints``: and every frame inside a recomputed segment, ``checkpoint_frames=True``)."""
     torch.set_num_threads(1)
     device, dtype_ = torch.device(device), getattr(torch, dtype)
     head = at.default_head(4)
@@ -174,7 +176,8 @@ def memory_probe(strands: int, frames: int, every: int, path: str, device: str, 
 
     def once(count):
         out = at.sim.rollout(sim, sim.initial_state(), poses[:count], checkpoint_every=every,
-                             reduce=lambda acc, k, s: acc + (w * s.x).sum(), initial=0.0)
+                             checkpoint_frames=frame_checkpoints, reduce=lambda acc, k, s: acc + (w * s.x).sum(),
+                             initial=0.0)
         out.value.backward()
 
     once(2)  # warm-up
@@ -194,28 +197,28 @@ def memory_probe(strands: int, frames: int, every: int, path: str, device: str, 
         before = _rss("VmRSS")
         once(frames)
         rise = _rss("VmHWM") - before
-    return {"S": strands, "frames": frames, "checkpoint_every": every, "path": path, "device": device.type,
-            "peak_rise_MiB": rise / 2 ** 20, "state_MiB": state_bytes / 2 ** 20, "wall_s": time.perf_counter() - t0}
+    return {"S": strands, "frames": frames, "checkpoint_every": every, "checkpoint_frames": frame_checkpoints,
+            "path": path, "device": device.type, "peak_rise_MiB": rise / 2 ** 20, "state_MiB": state_bytes / 2 ** 20, "wall_s": time.perf_counter() - t0}
 
 
-def memory_in_subprocess(args, every: int, path: str) -> dict:
+def memory_in_subprocess(args, every: int, path: str, frame_checkpoints: bool = False) -> dict:
     cmd = [sys.executable, os.path.abspath(__file__), "--memory-probe", str(args.memory_strands),
            str(args.memory_frames), str(every), path, "--device", args.device, "--dtype", args.dtype,
-           "--resolution", str(args.resolution)]
+           "--resolution", str(args.resolution)] + (["--memory-probe-frames"] if frame_checkpoints else [])
     env = dict(os.environ, MALLOC_MMAP_THRESHOLD_="65536", MALLOC_TRIM_THRESHOLD_="0", MALLOC_TOP_PAD_="0")
     out = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=6 * 3600)
     try:
         return json.loads(out.stdout.strip().splitlines()[-1])
     except (ValueError, IndexError):
-        return {"S": args.memory_strands, "frames": args.memory_frames, "checkpoint_every": every, "path": path,
-                "device": args.device, "peak_rise_MiB": float("nan"), "state_MiB": float("nan"),
+        return {"S": args.memory_strands, "frames": args.memory_frames, "checkpoint_every": every,
+                "checkpoint_frames": frame_checkpoints, "path": path, "device": args.device, "peak_rise_MiB": float("nan"), "state_MiB": float("nan"),
                 "wall_s": float("nan"), "error": _failure(out)}
 
 
-def memory_repeated(args, every: int, path: str) -> dict:
+def memory_repeated(args, every: int, path: str, frame_checkpoints: bool = False) -> dict:
     """:func:`memory_in_subprocess` ``--memory-reps`` times (interleaving is not needed: one probe
     at a time, nothing else running); the median peak, every peak in ``peaks_MiB``."""
-    runs = [memory_in_subprocess(args, every, path) for _ in range(max(1, args.memory_reps))]
+    runs = [memory_in_subprocess(args, every, path, frame_checkpoints) for _ in range(max(1, args.memory_reps))]
     ok = [r for r in runs if not r.get("error")]
     if not ok:
         return runs[0]
@@ -274,42 +277,47 @@ def render(records: list, memory: list, meta: dict, out: Path) -> None:
     lines += ["", "What runs where in a gradient frame of the native path (`ams_torch.native_status()[\"gradients\"]`): "
               f"native forward and adjoint: {', '.join(native_stages) or 'none'}; native forward, adjoint by the torch "
               f"definition recomputed in the backward pass: {', '.join(forward_only) or 'none'}; torch definition: "
-              f"{', '.join(rest) or 'none'}. The dynamics-only scene is all native. In the every-stage scene the "
-              "backward is mostly the hair–hair grid's: its torch definition (P2G, the pressure's cell terms, G2P) "
-              "is run again with autograd and differentiated, its pressure sweeps by native kernels (`sweeps`, "
-              "`sweeps_adjoint`); native adjoints of P2G, the cell terms and G2P are what would close the gap "
-              "(issue 25, item 1). The sum *forward (grad) + backward* is the cost of one gradient frame for a "
-              "training step."]
+              f"{', '.join(rest) or 'none'}. The hair–hair grid's adjoint recomputes its forward (P2G, the "
+              "pressure) natively inside the backward pass, so its backward costs about two native forwards of the "
+              "grid plus the adjoint kernels. The sum *forward (grad) + backward* is the cost of one gradient frame "
+              "for a training step."]
     if memory:
         lines += ["", f"## Memory: one loss + backward of a {memory[0]['frames']}-frame rollout (every stage, "
                   f"{memory[0]['S']:,} × 32)", "",
-                  "Each row a fresh process: `ams_torch.sim.rollout(..., checkpoint_every=k, reduce=...)` (no state "
-                  "kept per frame), the peak rise of resident memory (CPU: VmHWM over VmRSS before the rollout, with "
+                  "Each row a fresh process: `ams_torch.sim.rollout(..., checkpoint_every=k, checkpoint_frames=…, "
+                  "reduce=...)` (no state kept per frame; *checkpoint_frames*: the recomputed segment checkpoints "
+                  "each of its frames too, one more forward per frame), the peak rise of resident memory (CPU: VmHWM over VmRSS before the rollout, with "
                   "large blocks on mmap so freed memory leaves the resident set) or of the CUDA allocator.", "",
                   f"Each probe ran {memory[0].get('reps', 1)} times, each in its own process: median, and the "
                   "range.", "",
-                  "| path | checkpoint_every | peak rise (MiB), median | range | one state (MiB) | wall (s) |",
-                  "|---|---:|---:|---:|---:|---:|"]
+                  "| path | checkpoint_every | checkpoint_frames | peak rise (MiB), median | range | one state (MiB) | "
+                  "wall (s) |",
+                  "|---|---:|---|---:|---:|---:|---:|"]
         for m in memory:
             if m.get("error"):
                 err = m["error"] if isinstance(m["error"], str) else "; ".join(m["error"]) or "no output"
-                lines.append(f"| {m['path']} | {m['checkpoint_every']} | did not finish: {err} | – | – | – |")
+                lines.append(f"| {m['path']} | {m['checkpoint_every']} | {m.get('checkpoint_frames', False)} | "
+                             f"did not finish: {err} | – | – | – |")
                 continue
             runs = m.get("peaks_MiB", [m["peak_rise_MiB"]])
-            lines.append(f"| {m['path']} | {m['checkpoint_every']} | {m['peak_rise_MiB']:.1f} | "
+            lines.append(f"| {m['path']} | {m['checkpoint_every']} | {m.get('checkpoint_frames', False)} | "
+                         f"{m['peak_rise_MiB']:.1f} | "
                          f"{min(runs):.1f}–{max(runs):.1f} | {m['state_MiB']:.2f} | {m['wall_s']:.1f} |")
         done = [m for m in memory if not m.get("error") and m["checkpoint_every"] and m["peak_rise_MiB"] == m["peak_rise_MiB"]]
         if done:
             best = min(done, key=lambda m: m["peak_rise_MiB"])
             met = best["peak_rise_MiB"] < 64
             lines += ["", f"The goal was under 64 MiB beyond the states with checkpointing: {best['peak_rise_MiB']:.0f} "
-                      f"MiB (median) at checkpoint_every = {best['checkpoint_every']}, "
+                      f"MiB (median, the states included) at checkpoint_every = {best['checkpoint_every']}"
+                      + (", checkpoint_frames=True" if best.get("checkpoint_frames") else "") + ", "
                       + ("met." if met else f"missed by {best['peak_rise_MiB'] / 64:.1f}×.")
-                      + " What autograd keeps per frame of a segment is the native ops' inputs (the state, the "
-                      "per-element coefficients of that frame, x and v at each collision and hair–hair call): a few "
-                      "MiB; the grid's graph lives only while its own backward runs (it is recomputed there), and "
-                      "the checkpoints are one state per segment. The rest is what one frame's backward allocates "
-                      "at its peak (the grid's recomputed torch graph)."]
+                      + " What autograd keeps per frame of a recomputed segment is the native ops' inputs (the "
+                      "state, the per-element coefficients of that frame, x and v at each collision, "
+                      "follow-the-leader and hair–hair call: about 4.5 MiB at 1k × 32, three states' worth); with "
+                      "checkpoint_frames only each frame's input state is kept while a segment is differentiated, "
+                      "and one frame's graph at a time. The checkpoints are one state per segment; the rest is what "
+                      "one frame's backward allocates at its peak (the adjoint kernels' workspaces: the grid's "
+                      "recomputed pool, the sweeps' history)."]
     if meta.get("note"):
         lines += ["", meta["note"]]
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -331,9 +339,12 @@ def main(argv=None) -> int:
     ap.add_argument("--memory-frames", type=int, default=120)
     ap.add_argument("--memory-checkpoints", type=int, nargs="*", default=None,
                     help="checkpoint_every values of the memory rows (default: 0 and ⌈√frames⌉)")
+    ap.add_argument("--memory-frame-checkpoints", type=int, nargs="*", default=None,
+                    help="checkpoint_every values of the memory rows with checkpoint_frames=True (default: ⌈√frames⌉)")
     ap.add_argument("--memory-paths", nargs="+", default=["native"], choices=PATHS)
     ap.add_argument("--memory-reps", type=int, default=3, help="fresh-process probes per memory row (median reported)")
     ap.add_argument("--memory-probe", nargs=4, metavar=("S", "FRAMES", "EVERY", "PATH"), help=argparse.SUPPRESS)
+    ap.add_argument("--memory-probe-frames", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--quick", action="store_true", help="toy sizes (a smoke run)")
     ap.add_argument("--note", default="")
     ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks" / "grad"))
@@ -341,13 +352,15 @@ def main(argv=None) -> int:
     if args.memory_probe:
         s, frames, every, path = args.memory_probe
         print(json.dumps(memory_probe(int(s), int(frames), int(every), path, args.device, args.dtype,
-                                      args.resolution)))
+                                      args.resolution, args.memory_probe_frames)))
         return 0
     if args.quick:
         args.strands, args.reps, args.resolution = [16], 2, 8
         args.memory_strands, args.memory_frames = 16, 4
     if args.memory_checkpoints is None:
         args.memory_checkpoints = [0, math.ceil(math.sqrt(args.memory_frames))]
+    if args.memory_frame_checkpoints is None:
+        args.memory_frame_checkpoints = [math.ceil(math.sqrt(args.memory_frames))]
     torch.set_num_threads(args.threads)
     t0, load_start = time.perf_counter(), _load()
     head = at.default_head(4)
@@ -358,6 +371,7 @@ def main(argv=None) -> int:
             paths = [p for p in PATHS if p == "native" or s <= args.torch_max_strands]
             records += run_case(scene, s, args, head, grid, paths)
     memory = [memory_repeated(args, k, p) for p in args.memory_paths for k in args.memory_checkpoints]
+    memory += [memory_repeated(args, k, p, True) for p in args.memory_paths for k in args.memory_frame_checkpoints]
     for m in memory:
         print(f"memory {m}", flush=True)
     out = Path(args.out)

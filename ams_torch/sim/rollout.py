@@ -8,7 +8,9 @@ With ``checkpoint_every=k`` the frames run in segments of k, each one node of a 
 segment recompute (:class:`_Segment`): its forward runs without autograd and keeps only the
 segment's input state; its backward runs the segment again with autograd on and back-propagates
 through it, one segment at a time. Memory: one state per segment plus one segment's graph during
-the backward, O(frames / k + k) (k ≈ √frames is the least); time: one extra forward.
+the backward, O(frames / k + k) (k ≈ √frames is the least); time: one extra forward. With
+``checkpoint_frames=True`` the recomputed segment is itself a chain of one-frame nodes, so its
+backward holds one state per frame and a single frame's graph (two levels; one more forward).
 
 Unlike ``torch.utils.checkpoint`` the segment lists its differentiable inputs itself: the state,
 the simulator's parameters and grad-carrying buffers (learnable fields, their parametrisations,
@@ -132,7 +134,7 @@ def _differentiable_parameters(sim) -> list:
 
 
 def rollout(sim, state: State, controls: Controls, *, frames: Optional[int] = None, checkpoint_every: int = 0,
-            observe: Optional[Callable[[State], Any]] = None,
+            checkpoint_frames: bool = False, observe: Optional[Callable[[State], Any]] = None,
             reduce: Optional[Callable[[Any, int, State], Any]] = None, initial: Any = None,
             check: bool = True) -> Rollout:
     """Run ``frames`` frames of ``sim`` from ``state``, one per control.
@@ -145,6 +147,11 @@ def rollout(sim, state: State, controls: Controls, *, frames: Optional[int] = No
         frames: how many frames (default: ``len(controls)``).
         checkpoint_every: k ≥ 1 runs the frames in segments of k that are recomputed in the backward
             pass (memory O(frames / k + k) instead of O(frames)); 0 keeps every frame's graph.
+        checkpoint_frames: with ``checkpoint_every``, the backward pass's recompute of a segment
+            checkpoints each of its frames too (a second level): while a segment is differentiated
+            it keeps one state per frame instead of every frame's graph (the saved inputs of the
+            frame's native ops: about 3 states' worth per frame), at the cost of one more forward
+            per frame. Memory: (frames / k + k) states plus one frame's graph.
         observe: ``state → tensor(s)`` taken after every frame (e.g. positions at material points);
             the results are ``outputs``. Default: the States themselves are the outputs (unless
             ``reduce`` is given).
@@ -174,7 +181,8 @@ def rollout(sim, state: State, controls: Controls, *, frames: Optional[int] = No
     params = _differentiable_parameters(sim) if torch.is_grad_enabled() and checkpoint_every else []
     for start in range(0, frames, k):
         items = [frame_controls(get(i)) for i in range(start, min(start + k, frames))]
-        run = _segment_runner(sim, items, start, observe, reduce, keep_states)
+        run = _segment_runner(sim, items, start, observe, reduce, keep_states,
+                              params if checkpoint_frames and checkpoint_every else None)
         flat_in, spec = pytree.tree_flatten((state, acc))
         tensor_in = [t for t in flat_in if isinstance(t, torch.Tensor)]
         externals = _unique(params + _grad_tensors(items))
@@ -192,10 +200,24 @@ def rollout(sim, state: State, controls: Controls, *, frames: Optional[int] = No
     return Rollout(final=state, outputs=outputs, value=acc)
 
 
-def _segment_runner(sim, items: List[tuple], start: int, observe, reduce, keep_states: bool):
-    """run(state, acc) → (state, [per-frame outputs], acc) for the frames ``start …`` of ``items``."""
+def _segment_runner(sim, items: List[tuple], start: int, observe, reduce, keep_states: bool,
+                    frame_nodes: Optional[list] = None):
+    """run(state, acc) → (state, [per-frame outputs], acc) for the frames ``start …`` of ``items``.
+    ``frame_nodes``: the differentiable parameters, given when each frame of a recomputation (grad
+    mode on: the backward pass of a checkpointed segment) is itself a checkpointed node."""
 
     def run(state, acc):
+        if frame_nodes is not None and torch.is_grad_enabled() and len(items) > 1:
+            outs = []
+            for i, item in enumerate(items):
+                one = _segment_runner(sim, [item], start + i, observe, reduce, keep_states)
+                flat_in, spec = pytree.tree_flatten((state, acc))
+                foreign = {id(t) for t in pytree.tree_leaves([item]) + list(sim.parameters()) + list(sim.buffers())
+                           if isinstance(t, torch.Tensor)}
+                state, o, acc = _checkpointed(one, flat_in, spec, _unique(frame_nodes + _grad_tensors([item])),
+                                              foreign)
+                outs.extend(o)
+            return state, outs, acc
         outs = []
         for i, (pose, collider_poses, external_force) in enumerate(items):
             control = sim.control(state, pose, collider_poses=collider_poses, external_force=external_force)
@@ -225,7 +247,11 @@ def _checkpointed(run, flat_in: list, spec, externals: list, foreign: set) -> tu
         out_leaves, out_spec = pytree.tree_flatten(result)
         tensor_out = [t for t in out_leaves if isinstance(t, torch.Tensor)]
         box.setdefault("spec", out_spec)
-        box.setdefault("leaves", out_leaves)
+        # the non-tensor leaves only: the tensors become this node's outputs, and a reference to them
+        # from its own `run` closure would be a cycle through the autograd graph that Python's
+        # collector cannot see (every segment's outputs and graph would stay alive)
+        box.setdefault("leaves", [None if isinstance(t, torch.Tensor) else t for t in out_leaves])
+        box.setdefault("tensor_slots", [i for i, t in enumerate(out_leaves) if isinstance(t, torch.Tensor)])
         # one output per distinct tensor (a state returned as the final state and as an output)
         unique = _unique(tensor_out)
         box.setdefault("index", [next(j for j, u in enumerate(unique) if u is t) for t in tensor_out])
@@ -234,7 +260,6 @@ def _checkpointed(run, flat_in: list, spec, externals: list, foreign: set) -> tu
     tensors = [flat_in[i] for i in positions]
     outs = _Segment.apply(flat_run, len(tensors), foreign, *tensors, *externals)
     leaves = list(box["leaves"])
-    tensor_slots = [i for i, t in enumerate(leaves) if isinstance(t, torch.Tensor)]
-    for slot, j in zip(tensor_slots, box["index"]):
+    for slot, j in zip(box["tensor_slots"], box["index"]):
         leaves[slot] = outs[j]
     return pytree.tree_unflatten(leaves, box["spec"])
