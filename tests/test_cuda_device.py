@@ -1,7 +1,7 @@
 """The CUDA path on a real GPU (skipped without one): what the emulated tests cannot run and what the
 other CUDA tests never reach. Several blocks and 3+ scenes; 100k strands (checked against the CPU on a
 sample of strands: strands do not interact in the frame); N = 128 and 256; every collider and the
-grid ops and their adjoints on 3 scenes; the collision stage's adjoint and the pressure sweeps with their adjoint; float32 bounded
+grid ops and their adjoints on 3 scenes; the finish and yield adjoints; the collision stage's adjoint and the pressure sweeps with their adjoint; float32 bounded
 against float64 (not an absolute 1e-5, which rounding reaches
 at N = 40); opcheck of the collision and finish ops on CUDA; non-contiguous inputs; a side stream;
 a second GPU; P2G under torch's deterministic mode; torch.compile of the step; the emulator's
@@ -277,6 +277,27 @@ def test_cuda_grid_adjoints_three_scenes(dtype):
                           ns_c.g2p_adjoint(xl, vl, field, table, grid.origin, g_dv, h, r, 0.05),
                           ns_d.g2p_adjoint(*on(xl, vl, field, table, grid.origin, g_dv), h, r, 0.05)):
         close(c, d, "g2p " + name)
+
+
+@pytest.mark.parametrize("dtype", [F64, F32])
+def test_cuda_finish_and_yield_adjoints(dtype):
+    """The finish and yield adjoints on the device against the CPU kernels, 3 scenes × 2,000 strands."""
+    g = torch.Generator().manual_seed(3)
+    x, v = (torch.randn(3, 2000, 16, 3, generator=g, dtype=dtype) for _ in range(2))
+    pose = [torch.randn(3, 3, generator=g, dtype=dtype) for _ in range(3)]
+    pinned = torch.randint(0, 4, (2000,), generator=g)
+    gv, gs = torch.randn(x.shape, generator=g, dtype=dtype), torch.randn(x.shape[:-1], generator=g, dtype=dtype)
+    cpu, dev = built_native("cpu"), backend("frame")
+    on = lambda *ts: [t.to(DEVICE) for t in ts]  # noqa: E731
+    bound = 1e-12 if dtype == F64 else 16 * EPS32
+    for c, d in zip(cpu.finish_adjoint(x, v, pinned, pose, gv, gs),
+                    dev.finish_adjoint(*on(x, v, pinned), on(*pose), *on(gv, gs))):
+        assert float((c - d.cpu()).abs().max()) <= bound * float(c.abs().max()), rel(d.cpu(), c)
+    anchor = x + 0.1 * torch.randn(x.shape, generator=g, dtype=dtype)
+    limit = 0.1 * torch.rand(2000, 16, generator=g, dtype=dtype)
+    free = torch.rand(2000, 16, generator=g) > 0.2
+    for c, d in zip(cpu.yield_adjoint(x, anchor, limit, free, gv), dev.yield_adjoint(*on(x, anchor, limit, free, gv))):
+        assert float((c - d.cpu()).abs().max()) <= bound * float(c.abs().max()), rel(d.cpu(), c)
 
 
 def test_cuda_p2g_deterministic_mode():

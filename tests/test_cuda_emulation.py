@@ -319,6 +319,29 @@ def test_grid_adjoints(cpu, emu, emu_env, dtype, schedule):
         close(c, e, "g2p " + name)
 
 
+@pytest.mark.parametrize("dtype", [F64, F32])
+def test_finish_and_yield_adjoints(cpu, emu, emu_env, dtype):
+    """The finish adjoint (a thread per strand, the pose adjoints per strand) and the yield adjoint (a
+    thread per particle) against the CPU kernels, 3 scenes, the grid capped to one block."""
+    emu_env(max_grid=1)
+    g = torch.Generator().manual_seed(3)
+    x, v = (torch.randn(3, 5, 7, 3, generator=g, dtype=dtype) for _ in range(2))
+    pose = [torch.randn(3, 3, generator=g, dtype=dtype) for _ in range(3)]
+    pinned = torch.tensor([0, 1, 2, 7, 3])
+    gv, gs = torch.randn(x.shape, generator=g, dtype=dtype), torch.randn(x.shape[:-1], generator=g, dtype=dtype)
+    bound = 1e-12 if dtype == F64 else 16 * EPS32
+    for g_speed in (gs, None):
+        for c, e in zip(cpu["cpu"].finish_adjoint(x, v, pinned, pose, gv, g_speed),
+                        emu["cuda_emu"].finish_adjoint(x, v, pinned, pose, gv, g_speed)):
+            assert float((c - e).abs().max()) <= bound * float(c.abs().max()), rel(e, c)
+    anchor = x + 0.1 * torch.randn(x.shape, generator=g, dtype=dtype)
+    limit = 0.1 * torch.rand(5, 7, generator=g, dtype=dtype)
+    free = torch.rand(5, 7, generator=g) > 0.2
+    for c, e in zip(cpu["cpu"].yield_adjoint(x, anchor, limit, free, gv),
+                    emu["cuda_emu"].yield_adjoint(x, anchor, limit, free, gv)):
+        assert float((c - e).abs().max()) <= bound * float(c.abs().max()), rel(e, c)
+
+
 def test_grid_p2g_tells_deterministic_mode(emu):
     """The P2G kernel's float atomics sum in a varying order: under torch.use_deterministic_algorithms
     the binding raises (alertNotDeterministic); the registered op takes the torch definition there on CUDA."""

@@ -98,6 +98,8 @@ GROUPS = {
                         ("collide/collide_adjoint_cuda_binding.cpp", "collide/collide_adjoint_cuda.cu")),
     "grid": (("grid/grid_cpu.cpp", "grid/sweeps_cpu.cpp"),
              ("grid/grid_cuda_binding.cpp", "grid/grid_cuda.cu", "grid/sweeps_cuda_binding.cpp", "grid/sweeps_cuda.cu")),
+    "finish_adjoint": (("frame/finish_adjoint_cpu.cpp",),
+                       ("frame/finish_adjoint_cuda_binding.cpp", "frame/finish_adjoint_cuda.cu")),
     "grid_adjoint": (("grid/grid_adjoint_cpu.cpp",),
                      ("grid/grid_adjoint_cuda_binding.cpp", "grid/grid_adjoint_cuda.cu")),
 }
@@ -166,8 +168,8 @@ GRADIENT_STAGES = {
                 "collision kernels without colliders and their adjoint; the one-particle angular form "
                 "(angular_reaction=False), a callable external force or a rest shape requiring grad: the torch "
                 "definition",
-    "hair_hair": "native forward (p2g / pressure / g2p of the cpu / cuda library) and adjoint (p2g_adjoint / "
-                 "pressure_adjoint / g2p_adjoint: P2G, the pressure's face field, sweeps and cell terms, G2P with "
+    "hair_hair": "native forward and adjoint (p2g / pressure / g2p and p2g_adjoint / pressure_adjoint / "
+                 "g2p_adjoint of the cpu / cuda library: P2G, the pressure's face field, sweeps and cell terms, G2P with "
                  "the FLIP/PIC blend; the backward pass recomputes the grid from the stage's inputs, nothing of it "
                  "kept between the passes; the change of frame by autograd on its torch definition); on CUDA under "
                  "torch's deterministic mode: the torch definition's vector-Jacobian product recomputed, its "
@@ -177,8 +179,10 @@ GRADIENT_STAGES = {
                   "the colliders' world poses and velocities (the head's pose through colliders that follow it), "
                   "friction and the head rotation; a hollow sphere, a collider class without kernels, or "
                   "collider geometry or a rest shape requiring grad: the torch definition",
-    "finish": "torch definition",
-    "plastic_yield": "torch definition",
+    "finish": "native forward and adjoint (finish / finish_adjoint of the cpu / cuda library) when the head pose "
+              "has velocities; otherwise the torch definition",
+    "plastic_yield": "native adjoint (yield_adjoint of the cpu / cuda library; the forward is the torch definition "
+                     "in every path: a few elementwise operations), with the head pose's change of frame by autograd",
 }
 
 

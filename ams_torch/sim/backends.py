@@ -4,7 +4,8 @@ smoke tests of the fused ops' backends.
 :func:`resolve_backend` is the simulator's backend decision: it builds (or loads) every backend the
 configuration needs, raises for ``backend="native"`` naming each one that cannot be had and why,
 and otherwise falls back to the torch definition with one warning per backend
-(:mod:`ams_torch.native.build`). The probes registered here (frame, collisions, the collisions' adjoint, grid, the grid's adjoint) are what
+(:mod:`ams_torch.native.build`). The probes registered here (frame, collisions, the collisions' adjoint, grid, the grid's adjoint, the
+finish's adjoint) are what
 ``build`` runs right after loading such a backend: one tiny call compared with the torch definition.
 """
 from __future__ import annotations
@@ -208,8 +209,37 @@ def _grid_adjoint(ns, device) -> None:
                              f"definition {fd!r}")
 
 
+
+def _finish_adjoint(ns, device) -> None:
+    """finish_adjoint against a central difference of the torch definition (finish._finish_torch)
+    along one direction of x, v and the pose (no autograd, as ``_collide_adjoint``)."""
+    from ams_torch.sim.finish import _finish_torch
+
+    g = torch.Generator().manual_seed(0)
+    x, v = (torch.randn(2, 3, 4, 3, generator=g, dtype=F64).to(device) for _ in range(2))
+    pose = [torch.randn(2, 3, generator=g, dtype=F64).to(device) for _ in range(3)]
+    pinned = torch.tensor([0, 1, 4], device=device)
+    gv = torch.randn(x.shape, generator=g, dtype=F64).to(device)
+    gs = torch.randn(x.shape[:-1], generator=g, dtype=F64).to(device)
+    got = ns.finish_adjoint(x, v, pinned, pose, gv, gs)
+    dirs = [torch.randn(t.shape, generator=g, dtype=F64).to(device) for t in (x, v, *pose)]
+    h, vals = 1e-6, []
+    for sign in (1.0, -1.0):
+        a = [t + sign * h * d for t, d in zip((x, v, *pose), dirs)]
+        out, speed = _finish_torch(a[0], a[1], pinned, a[2:])
+        vals.append(float((gv * out).sum() + (gs * speed).sum()))
+    fd = (vals[0] - vals[1]) / (2 * h)
+    g_pose = got[2].reshape(2, 3, 9).sum(1)
+    ad = float((got[0] * dirs[0]).sum() + (got[1] * dirs[1]).sum()) + sum(
+        float((g_pose[:, 3 * k:3 * k + 3] * dirs[2 + k]).sum()) for k in range(3))
+    if not abs(ad - fd) <= 1e-6 * max(abs(fd), 1e-30):
+        raise AssertionError(f"finish_adjoint: directional derivative {ad!r}, central difference of the torch "
+                             f"definition {fd!r}")
+
+
 probes.register("frame", _frame)
 probes.register("collide", _collide)
 probes.register("collide_adjoint", _collide_adjoint)
 probes.register("grid", _grid)
 probes.register("grid_adjoint", _grid_adjoint)
+probes.register("finish_adjoint", _finish_adjoint)

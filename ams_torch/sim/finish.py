@@ -16,10 +16,11 @@ from typing import List, Tuple
 import torch
 
 from ams_torch.geometry.pose import Pose
-from ams_torch.native.dispatch import native_inputs, native_namespace
+from ams_torch.native.dispatch import NATIVE_DTYPES, native_available, native_inputs, native_namespace
 from ams_torch.sim.op_support import pose_tensors
 
-__all__ = ["pin_and_speed", "native_finish", "native_finish_supported", "finish_op"]
+__all__ = ["pin_and_speed", "native_finish", "native_finish_supported", "native_finish_diff_supported",
+           "finish_op"]
 
 
 def pin_and_speed(x: torch.Tensor, v: torch.Tensor, pinned: torch.Tensor, pose: Pose) -> tuple:
@@ -65,7 +66,7 @@ def finish_op(x: torch.Tensor, v: torch.Tensor, num_pinned: torch.Tensor,
 
 
 def _finish_kernel(x, v, num_pinned, pose):
-    ns = native_namespace("frame", x, (x, v, *pose))
+    ns = native_namespace("frame", x)  # inputs may keep their gradient: this op has its own adjoint
     if ns is None:
         return _finish_torch(x, v, num_pinned, pose)
     return tuple(ns.finish(x, v, num_pinned, pose))
@@ -97,3 +98,88 @@ def native_finish(model, x: torch.Tensor, v: torch.Tensor, pose: Pose) -> tuple:
         return pin_and_speed(x, v, model.pinned, pose)
     (_, t, lin, ang), _ = pose_tensors(pose, x)
     return finish_op(x, v, model.num_pinned, [t, lin, ang])
+
+
+# -- the adjoint (gradient frames of a native simulator) ----------------------------------------------
+
+def _finish_setup(ctx, inputs, output):
+    x, v, num_pinned, pose = inputs
+    ctx.save_for_backward(x, v, num_pinned, *pose)
+
+
+def _finish_backward(ctx, g_v, g_speed):
+    """The vector-Jacobian product of ``ams_torch::finish``: the native ``finish_adjoint``
+    (``csrc/frame/finish_adjoint.h``; op group ``finish_adjoint``) where built, else autograd on the
+    torch definition. Returns the adjoints of x, v, num_pinned (None) and the pose [t, lin, ang]."""
+    x, v, num_pinned, t, lin, ang = ctx.saved_tensors
+    g_v = torch.zeros_like(v) if g_v is None else g_v.contiguous()
+    g_speed = None if g_speed is None else g_speed.contiguous()
+    ns = native_namespace("finish_adjoint", x)
+    if ns is None or not hasattr(ns, "finish_adjoint"):
+        leaves = [a.detach().requires_grad_() for a in (x, v, t, lin, ang)]
+        with torch.enable_grad():
+            out, speed = _finish_torch(leaves[0], leaves[1], num_pinned, leaves[2:])
+            pairs = [(out, g_v)] + ([(speed, g_speed)] if g_speed is not None else [])
+            grads = torch.autograd.grad([o for o, _ in pairs], leaves, [g for _, g in pairs], allow_unused=True)
+        grads = [torch.zeros_like(a) if g is None else g for g, a in zip(grads, leaves)]
+        return grads[0], grads[1], None, list(grads[2:])
+    g_x, g_vin, g_pose = ns.finish_adjoint(x, v, num_pinned, [t, lin, ang], g_v, g_speed)
+    strands = x.shape[-3]
+    per_scene = g_pose.reshape(-1, strands, 9).sum(1)  # (B, 9): the strands' sums, in one order
+    pose_grads = []
+    for k, a in enumerate((t, lin, ang)):
+        part = per_scene[:, 3 * k:3 * k + 3]
+        pose_grads.append((part.sum(0) if a.numel() == 3 else part).reshape(a.shape))
+    return g_x, g_vin, None, pose_grads
+
+
+finish_op.register_autograd(_finish_backward, setup_context=_finish_setup)
+
+
+def native_finish_diff_supported(x: torch.Tensor, v: torch.Tensor, pose: Pose) -> bool:
+    """Whether a gradient frame's end can run the native forward and adjoint: a pose with
+    velocities, float32/float64 on CPU/CUDA, and the kernels built (on first call)."""
+    if not pose.has_velocity or v.dtype != x.dtype or x.dtype not in NATIVE_DTYPES:
+        return False
+    return native_available("frame", x.device, x.dtype) and native_available("finish_adjoint", x.device, x.dtype)
+
+
+class _NativeYieldAdjoint(torch.autograd.Function):
+    """The plastic yield's anchors (:func:`ams_torch.sim.forces.integrity_yield`) with its native
+    adjoint: the forward is the torch definition (no graph kept; no native forward exists: the
+    stage is a few elementwise operations), the backward the ``yield_adjoint`` kernel
+    (``csrc/frame/finish_adjoint.h``). Inputs: x_local, anchor (..., S, N, 3) m head frame, limit
+    (S, N) m (breaking × segment length), free (S, N) bool. Returns the new anchors."""
+
+    @staticmethod
+    def forward(ctx, x_local, anchor, limit, free):
+        from ams_torch.sim.forces import safe_normalize
+
+        ctx.save_for_backward(x_local, anchor, limit, free)
+        unit, dist = safe_normalize(anchor - x_local)
+        over = (dist > limit) & free
+        return torch.where(over[..., None], x_local + limit[..., None] * unit, anchor)
+
+    @staticmethod
+    def backward(ctx, g):
+        x_local, anchor, limit, free = ctx.saved_tensors
+        ns = native_namespace("finish_adjoint", x_local)
+        gx, ga, gl = ns.yield_adjoint(x_local.contiguous(), anchor.contiguous(), limit.contiguous(), free.contiguous(),
+                                      g.contiguous())
+        g_limit = gl.reshape((-1,) + tuple(limit.shape)).sum(0) if ctx.needs_input_grad[2] else None
+        return gx, ga, g_limit, None
+
+
+def native_yield_diff(x_local: torch.Tensor, anchor: torch.Tensor, segment_length: torch.Tensor, breaking,
+                      free: torch.Tensor) -> torch.Tensor:
+    """:func:`~ams_torch.sim.forces.integrity_yield` in a gradient frame of a native simulator: the
+    same values, its adjoint by the native ``yield_adjoint`` where built (float32 / float64 on CPU /
+    CUDA), else the torch definition itself. Arguments and result as that function."""
+    from ams_torch.sim.forces import integrity_yield
+
+    if (x_local.dtype not in NATIVE_DTYPES or anchor.dtype != x_local.dtype
+            or not native_available("finish_adjoint", x_local.device, x_local.dtype)):
+        return integrity_yield(x_local, anchor, segment_length, breaking, free)
+    limit = breaking * segment_length
+    free_b = free.to(device=x_local.device, dtype=torch.bool).expand(limit.shape)
+    return _NativeYieldAdjoint.apply(x_local, anchor, limit.to(x_local.dtype), free_b)

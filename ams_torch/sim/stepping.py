@@ -34,7 +34,9 @@ from ams_torch.sim import forces
 from ams_torch.sim.backends import frame_route
 from ams_torch.sim.contact import collisions_world, substep_contact
 from ams_torch.sim.dynamics import frame_dynamics
-from ams_torch.sim.finish import native_finish, pin_and_speed
+from ams_torch.sim.finish import (finish_op, native_finish, native_finish_diff_supported, native_yield_diff,
+                                  pin_and_speed)
+from ams_torch.sim.op_support import pose_tensors
 from ams_torch.sim.native import native_collisions, native_frame_dynamics
 from ams_torch.sim.native_collide_grad import (native_collisions_diff, native_collisions_diff_supported,
                                                substep_contact_diff)
@@ -105,17 +107,19 @@ def collisions(model: Model, config: Config, x: torch.Tensor, v: torch.Tensor, h
 
 
 def plastic_update(model: Model, coeffs: Coefficients, x: torch.Tensor, ghost_rest: torch.Tensor,
-                   sag_offset: torch.Tensor, pose: Pose) -> torch.Tensor:
+                   sag_offset: torch.Tensor, pose: Pose, diff: bool = False) -> torch.Tensor:
     """Yield of the non-Hookean integrity coupling (SPEC §7), once per frame.
 
     x: (..., S, N, 3) m world positions at the end of the frame; ghost_rest, sag_offset:
     (..., S, N, 3) m head frame; pose: the head pose at the end of the frame. Returns the new
     ghost_rest: where a free particle's elongation (from its anchor ``ghost_rest − sag_offset``)
     exceeds the breaking point, the anchor moves (permanently) so the elongation is exactly it.
+    ``diff``: a gradient frame of a native simulator (the yield's native adjoint,
+    :func:`~ams_torch.sim.finish.native_yield_diff`).
     """
     anchor = ghost_rest - sag_offset
-    new_anchor = forces.integrity_yield(pose.to_local(x), anchor, model.segment_length, coeffs.breaking,
-                                        ~model.pinned)
+    yield_ = native_yield_diff if diff else forces.integrity_yield
+    new_anchor = yield_(pose.to_local(x), anchor, model.segment_length, coeffs.breaking, ~model.pinned)
     return new_anchor + sag_offset
 
 
@@ -128,13 +132,20 @@ def _nonfinite(*tensors) -> torch.Tensor:
 
 
 def _finish(model: Model, config: Config, state: State, control: Control, x, v, pose: Pose,
-            native: bool = False, speed: Optional[torch.Tensor] = None) -> tuple:
+            native: bool = False, speed: Optional[torch.Tensor] = None, diff: bool = False) -> tuple:
     """The end of a frame: pinned particles take the head's rigid velocity, and the divergence
-    flag is updated (device-side; :mod:`ams_torch.sim.finish`, its fused kernel when ``native``;
-    ``speed`` given: v is already finished, fused into the dynamics' kernel).
+    flag is updated (device-side; :mod:`ams_torch.sim.finish`, its fused kernel when ``native``,
+    its kernel and native adjoint in a gradient frame of a native simulator (``diff``); ``speed``
+    given: v is already finished, fused into the dynamics' kernel).
     Returns (v, diverged_frame, diverged_input)."""
     if speed is None:
-        v, speed = (native_finish(model, x, v, pose) if native else pin_and_speed(x, v, model.pinned, pose))
+        if native:
+            v, speed = native_finish(model, x, v, pose)
+        elif diff and native_finish_diff_supported(x, v, pose):
+            (_, t, lin, ang), _ = pose_tensors(pose, x)
+            v, speed = finish_op(x, v, model.num_pinned, [t, lin, ang])
+        else:
+            v, speed = pin_and_speed(x, v, model.pinned, pose)
     # NaN/Inf in x or v makes the largest relative speed NaN (amax propagates it), and NaN <= limit
     # is False: one comparison catches both non-finite and exploding particles
     bad = ~(speed.amax() <= config.max_relative_speed)
@@ -258,13 +269,15 @@ def collisions_stage(f: Frame) -> Frame:
 
 def finish_stage(f: Frame) -> Frame:
     """Pinned particles take the head's velocity; the divergence flag is updated (:func:`_finish`)."""
-    v, frame, bad_input = _finish(f.model, f.config, f.state, f.control, f.x, f.v, f.pose1, f.native, f.speed)
+    v, frame, bad_input = _finish(f.model, f.config, f.state, f.control, f.x, f.v, f.pose1, f.native, f.speed,
+                                  _native_grad(f))
     return f.replace(v=v, diverged_frame=frame, diverged_input=bad_input)
 
 
 def yield_stage(f: Frame) -> Frame:
     """The non-Hookean plastic yield of the ghosts (SPEC §7): :func:`plastic_update`."""
-    return f.replace(ghost_rest=plastic_update(f.model, f.coeffs, f.x, f.ghost_rest, f.state.sag_offset, f.pose1))
+    return f.replace(ghost_rest=plastic_update(f.model, f.coeffs, f.x, f.ghost_rest, f.state.sag_offset, f.pose1,
+                                               _native_grad(f)))
 
 
 class Stage(NamedTuple):
