@@ -130,12 +130,13 @@ AMS_GRID_HD void p2g_particle_adjoint(const T* xl, const T* vl, T m, const T* or
 
 // Adjoint of the G2P change for one particle: dv_c = sum_k field[f_k] w_k - pic (sum_k w_k) vl_c
 // (transfer.interpolate_change), given g_dv[3] (the adjoint of the head-frame change, zero for a
-// pinned particle). Writes g_xl[3], g_vl[3]; calls scatter(face, value) for each corner's
-// field[face] += value (corners without a slot skipped).
+// pinned particle). Writes g_xl[3], g_vl[3] and dv[3] (the change itself, as grid.h's g2p_particle
+// computes it: the caller differentiates the rotation back to the world with it); calls
+// scatter(face, value) for each corner's field[face] += value (corners without a slot skipped).
 template <class T, class Scatter>
 AMS_GRID_HD void g2p_particle_adjoint(const T* xl, const T* vl, const T* field, const T* origin, T h, int64_t r,
                                       int64_t nb, const int32_t* table, T pic, const T* g_dv, T* g_xl, T* g_vl,
-                                      Scatter scatter) {
+                                      T* dv, Scatter scatter) {
   ParticleStencil<T> s;
   particle_stencil(xl, origin, h, r, s);
   PoolCorners pc;
@@ -146,13 +147,15 @@ AMS_GRID_HD void g2p_particle_adjoint(const T* xl, const T* vl, const T* field, 
     T w[8], gw[8];
     corner_faces_rt(c, s, pc, face, w);
     const T g = g_dv[c];
-    T ws = T(0);
+    T ws = T(0), acc = T(0);
     for (int k = 0; k < 8; ++k) {
       const T fv = face[k] < 0 ? T(0) : field[face[k]];
+      if (face[k] >= 0) acc = acc + fv * w[k];
       gw[k] = g * fv - pic * g * vl[c];
       ws = ws + w[k];
       if (face[k] >= 0) scatter(face[k], g * w[k]);
     }
+    dv[c] = acc - pic * ws * vl[c];
     g_vl[c] = -(pic * ws) * g;
     corner_weights_adjoint_rt(c, s, gw, g1);
   }

@@ -173,30 +173,11 @@ void g2p_adjoint_impl(const T* xl, const T* vl, const T* field, const int32_t* t
         for (int64_t q = st[s]; q < st[s + 1]; ++q) {
           const int64_t i = b * P + order[size_t(b * P + q)];
           g2p_particle_adjoint(xl + 3 * i, vl + 3 * i, field + b * pool, origin, h, r, nb, table + b * nb3, pict,
-                               g_dv + 3 * i, g_xl + 3 * i, g_vl + 3 * i, add);
+                               g_dv + 3 * i, g_xl + 3 * i, g_vl + 3 * i, dv + 3 * i, add);
         }
       }
     });
   }
-  // the forward's change dv (for the adjoint of the rotation): grid.h's g2p_particle without the frame
-  at::parallel_for(0, B * P, kParticleGrain, [&](int64_t i0, int64_t i1) {
-    for (int64_t i = i0; i < i1; ++i) {
-      const int64_t b = i / P;
-      ParticleStencil<T> st;
-      particle_stencil(xl + 3 * i, origin, h, r, st);
-      PoolCorners pc;
-      pool_corners(st, nb, table + b * nb3, pc);
-      const T* fb = field + b * pool;
-      for_each_component(st, pc, [&](int c, const int32_t* face, const T* w) {
-        T acc = T(0), ws = T(0);
-        for (int k = 0; k < 8; ++k) {
-          if (face[k] >= 0) acc = acc + fb[face[k]] * w[k];
-          ws = ws + w[k];
-        }
-        dv[3 * i + c] = acc - pict * ws * vl[3 * i + c];
-      });
-    }
-  });
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> g2p_adjoint_cpu(
@@ -257,12 +238,61 @@ void pressure_adjoint_impl(const T* faces, const int32_t* table, const int32_t* 
       active[u] = bits;
     }
   });
-  // list of the active cells in pool order: list index of (u, l) = off[u] + rank of l in active[u]
+  // The sweeps' adjoint only moves where a sweep's input is >= 0: the slots the forward sweeps
+  // (grid_cpu.cpp's "awake" slots: those with a cell whose src >= 0, here ties included since the
+  // clamp passes the gradient at 0, then the neighbours of every slot whose phi became non-zero).
+  // Anywhere else every update is max(0, src < 0) = 0 from zero neighbours, whose adjoint is 0.
+  std::vector<uint64_t> listed(static_cast<size_t>(U), 0);
+  if (iterations > 0) {
+    std::vector<uint8_t> awake(static_cast<size_t>(U), 0);
+    for (int64_t u = 0; u < U; ++u)
+      for (uint64_t bits = active[u]; bits && !awake[u]; bits &= bits - 1)
+        awake[u] = entries[size_t((u * kBlockCells + __builtin_ctzll(bits)) * kEntry)] >= T(0);
+    std::vector<int64_t> wake;
+    for (int64_t u = 0; u < U; ++u)
+      if (awake[u]) wake.push_back(u);
+    std::vector<T> pa(size_t(B * K * kBlockCells), T(0)), pb(size_t(B * K * kBlockCells), T(0));
+    std::vector<uint8_t> live(static_cast<size_t>(U), 0);
+    for (int64_t it = 0; it < iterations && !wake.empty(); ++it) {
+      const T* src = it % 2 == 0 ? pa.data() : pb.data();
+      T* dst = it % 2 == 0 ? pb.data() : pa.data();
+      const int64_t n = int64_t(wake.size());
+      at::parallel_for(0, n, kSlotGrain, [&](int64_t i0, int64_t i1) {
+        for (int64_t i = i0; i < i1; ++i) {
+          const int64_t u = wake[size_t(i)], b = scene[u], slot = u - first[b];
+          bool any = false;
+          for (uint64_t bits = active[u]; bits; bits &= bits - 1) {
+            const int l = __builtin_ctzll(bits);
+            const T t = sweep_cell(src + b * K * kBlockCells, slot, l, nbr.data() + 6 * u,
+                                   entries.data() + (u * kBlockCells + l) * kEntry, q.one_minus_omega);
+            dst[(b * K + slot) * kBlockCells + l] = t;
+            any = any || t != T(0);
+          }
+          live[u] = any;
+        }
+      });
+      for (int64_t i = 0; i < n; ++i) {
+        const int64_t u = wake[size_t(i)];
+        if (!live[u]) continue;
+        for (int d = 0; d < 6; ++d) {
+          const int32_t sl = nbr[6 * u + d];
+          if (sl < 0) continue;
+          const int64_t w = first[scene[u]] + sl;
+          if (!awake[w]) {
+            awake[w] = 1;
+            wake.push_back(w);
+          }
+        }
+      }
+    }
+    for (int64_t u = 0; u < U; ++u) listed[u] = awake[u] ? active[u] : 0;
+  }
+  // list of those slots' active cells in pool order: list index of (u, l) = off[u] + rank of l in listed[u]
   std::vector<int64_t> off(size_t(U + 1), 0);
-  for (int64_t u = 0; u < U; ++u) off[u + 1] = off[u] + bit_count(active[u]);
+  for (int64_t u = 0; u < U; ++u) off[u + 1] = off[u] + bit_count(listed[u]);
   const int64_t A = off[U], n1 = A + 1; // slot A: a zero that stays zero
   const auto list_index = [&](int64_t u, int l) -> int64_t {
-    const uint64_t bits = active[u];
+    const uint64_t bits = listed[u];
     if (!((bits >> l) & 1)) return -1;
     return off[u] + bit_count(bits & ((uint64_t(1) << l) - 1));
   };
@@ -274,7 +304,7 @@ void pressure_adjoint_impl(const T* faces, const int32_t* table, const int32_t* 
     at::parallel_for(0, U, kSlotGrain, [&](int64_t u0, int64_t u1) {
       for (int64_t u = u0; u < u1; ++u) {
         const int64_t b = scene[u], slot = u - first[b];
-        for (uint64_t bits = active[u]; bits; bits &= bits - 1) {
+        for (uint64_t bits = listed[u]; bits; bits &= bits - 1) {
           const int l = __builtin_ctzll(bits);
           const int64_t i = list_index(u, l);
           const T* e = entries.data() + (u * kBlockCells + l) * kEntry;
@@ -302,7 +332,7 @@ void pressure_adjoint_impl(const T* faces, const int32_t* table, const int32_t* 
         const T* fs = faces + b * pool * 2;
         const T* gfs = g_field + b * pool;
         T* ps = phi_pool.data() + b * K * kBlockCells;
-        for (uint64_t bits = active[u]; bits; bits &= bits - 1) {
+        for (uint64_t bits = listed[u]; bits; bits &= bits - 1) {
           const int l = __builtin_ctzll(bits);
           const int64_t i = list_index(u, l);
           ps[slot * kBlockCells + l] = phi_l[size_t(i)];
@@ -324,7 +354,7 @@ void pressure_adjoint_impl(const T* faces, const int32_t* table, const int32_t* 
       for (int64_t u = u0; u < u1; ++u) {
         const int64_t b = scene[u], slot = u - first[b];
         const T* fs = faces + b * pool * 2;
-        for (uint64_t bits = active[u]; bits; bits &= bits - 1) {
+        for (uint64_t bits = listed[u]; bits; bits &= bits - 1) {
           const int l = __builtin_ctzll(bits);
           const int64_t i = list_index(u, l);
           T mass[6], mom[6], g_inv[6];

@@ -58,19 +58,8 @@ __global__ void g2p_adjoint_kernel(const T* xl, const T* vl, const T* field, con
     const T* fb = field + b * K * 3 * kBlockCells;
     T* gf = g_field + b * K * 3 * kBlockCells;
     g2p_particle_adjoint(xl + 3 * q, vl + 3 * q, fb, origin, h, r, nb, table + b * nb3, pic, g_dv + 3 * q,
-                         g_xl + 3 * q, g_vl + 3 * q, [gf](int32_t f, T value) { atomicAdd(gf + f, value); });
-    ParticleStencil<T> st;
-    particle_stencil(xl + 3 * q, origin, h, r, st);
-    PoolCorners pc;
-    pool_corners(st, nb, table + b * nb3, pc);
-    for_each_component(st, pc, [&](int c, const int32_t* face, const T* w) {
-      T acc = T(0), ws = T(0);
-      for (int k = 0; k < 8; ++k) {
-        if (face[k] >= 0) acc = acc + fb[face[k]] * w[k];
-        ws = ws + w[k];
-      }
-      dv[3 * q + c] = acc - pic * ws * vl[3 * q + c];
-    });
+                         g_xl + 3 * q, g_vl + 3 * q, dv + 3 * q,
+                         [gf](int32_t f, T value) { atomicAdd(gf + f, value); });
   }
 }
 
