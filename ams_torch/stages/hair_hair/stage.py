@@ -222,9 +222,10 @@ def hair_hair_stage(grid: Optional[HairHairGrid], x: torch.Tensor, v: torch.Tens
             ``"torch"``: the torch definition (differentiable).
         with_overflow: also return the overflow flag.
         recompute: when an input requires grad and the native kernels are built (float32 /
-            float64): the forward by the native kernels and the backward the torch definition's
-            vector-Jacobian product recomputed from the inputs (nothing of the grid kept between
-            the passes); a gradient frame of a native simulator asks for it.
+            float64): the forward by the native kernels and the backward by the native adjoint
+            kernels, the grid recomputed from the inputs (nothing of it kept between the passes;
+            without adjoint kernels the torch definition's vector-Jacobian product, recomputed); a
+            gradient frame of a native simulator asks for it.
     Returns:
         (x', v'): (..., S, N, 3) metres and m/s, with ``x' = x + dt (v' − v)`` for the grid part
         (plus the position push of detailed collisions, when enabled); with ``with_overflow``,
