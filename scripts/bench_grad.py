@@ -106,13 +106,16 @@ def gradient_stages(sim: at.Simulator) -> str:
     status = at.native_status().get("gradients", {})
     if sim.config.backend != "native":
         return "none (torch definition)"
-    present = {"dynamics": True, "hair_hair": bool(sim.config.hair_hair), "collisions": bool(sim.config.colliders)}
+    present = {"dynamics": True, "hair_hair": bool(sim.config.hair_hair), "collisions": bool(sim.config.colliders),
+               "finish": True, "plastic_yield": bool(sim.config.nonhookean)}
     out = []
     for name, how in status.items():
         if not present.get(name, False):
             continue
         if how.startswith("native forward and adjoint"):
             out.append(name)
+        elif how.startswith("native adjoint"):
+            out.append(f"{name} (adjoint)")
         elif how.startswith("native forward"):
             out.append(f"{name} (forward)")
     return ", ".join(out) or "none"
@@ -273,11 +276,13 @@ def render(records: list, memory: list, meta: dict, out: Path) -> None:
     st = at.native_status()["gradients"]
     native_stages = [k for k, v in st.items() if v.startswith("native forward and adjoint")]
     forward_only = [k for k, v in st.items() if v.startswith("native forward (")]
-    rest = [k for k in st if k not in native_stages + forward_only]
+    adjoint_only = [k for k, v in st.items() if v.startswith("native adjoint")]
+    rest = [k for k in st if k not in native_stages + forward_only + adjoint_only]
     lines += ["", "What runs where in a gradient frame of the native path (`ams_torch.native_status()[\"gradients\"]`): "
-              f"native forward and adjoint: {', '.join(native_stages) or 'none'}; native forward, adjoint by the torch "
-              f"definition recomputed in the backward pass: {', '.join(forward_only) or 'none'}; torch definition: "
-              f"{', '.join(rest) or 'none'}. The hair–hair grid's adjoint recomputes its forward (P2G, the "
+              f"native forward and adjoint: {', '.join(native_stages) or 'none'}; torch forward, native adjoint: "
+              f"{', '.join(adjoint_only) or 'none'}; native forward, adjoint by the torch definition recomputed in "
+              f"the backward pass: {', '.join(forward_only) or 'none'}; torch definition: "
+              f"{', '.join(rest) or 'none'} (each with the fallbacks `native_status()` names). The hair–hair grid's adjoint recomputes its forward (P2G, the "
               "pressure) natively inside the backward pass, so its backward costs about two native forwards of the "
               "grid plus the adjoint kernels. The sum *forward (grad) + backward* is the cost of one gradient frame "
               "for a training step."]

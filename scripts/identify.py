@@ -210,9 +210,9 @@ def scale_spec(quick: bool = False) -> dict:
 
 def run_scale(args, log=print) -> dict:
     """Fit the integrity rate and the per-strand drag of :func:`scale_spec` (Adam or L-BFGS) on the native
-    backend (forward: fused kernels; backward: the native adjoints of the dynamics and collisions, the
-    hair–hair grid's torch definition recomputed), after a finite-difference check of the gradient on
-    the full rollout."""
+    backend (forward: fused kernels; backward: the native adjoints of every stage: the dynamics, the
+    collisions, the hair–hair grid, the frame's end), after a finite-difference check of the gradient
+    on the full rollout."""
     spec = scale_spec(args.quick)
     stages = spec["stages"]
     t0 = time.perf_counter()
@@ -262,9 +262,9 @@ def render_scale(sc: dict, meta: dict) -> list:
             "field, one log-value per strand): "
             f"{sc['strands'] + 1} unknowns. {sc.get('optimizer', 'lbfgs (strong Wolfe)').replace('lbfgs', 'L-BFGS')}, each evaluation a full "
             "rollout checkpointed "
-            "every frame (`ams_torch.sim.rollout`) and its backward: the native adjoints of the strand dynamics "
-            "(substep by substep, with the contact's) and of the collisions, the hair–hair grid's native forward "
-            "with its torch definition recomputed for the adjoint (`ams_torch.native_status()[\"gradients\"]`).", "",
+            "every frame (`ams_torch.sim.rollout`) and its backward: the native adjoints of every stage, the "
+            "strand dynamics (substep by substep, with the contact's), the collisions, the hair–hair grid (P2G, "
+            "pressure, G2P) and the frame's end (`ams_torch.native_status()[\"gradients\"]`).", "",
             f"- Gradient check on the full rollout, two random directions, h = 1e-4: {fd}.",
             f"- Integrity rate: {k['start']:g} → {k['fitted']:.5g} s⁻² (true {k['true']:g}).",
             f"- Drag per strand (true {d['true_range'][0]:.2f}–{d['true_range'][1]:.2f} s⁻¹, start 3.0 everywhere): "
