@@ -278,3 +278,21 @@ def test_g2p_adjoint_does_not_depend_on_the_thread_count():
         torch.set_num_threads(threads)
     for a, b in zip(one, two):
         assert torch.equal(a, b)
+
+
+def test_opcheck_of_the_grid_op():
+    """``ams_torch::hair_hair_grid`` (the grid part as one differentiable op): torch.library.opcheck
+    (schema, fake tensors, autograd registration) on a small pressure-active case, float64."""
+    from native_cases import solve_args
+
+    from ams_torch.stages.hair_hair.stage import grid_op
+
+    case = squeeze_scene(strands=30, particles=6, resolution=8, scenes=2)
+    grid = case["grid"]
+    xf, vf, m = (case[k].detach().clone().requires_grad_() for k in ("xf", "vf", "m"))
+    frame = case["frame"].detach().clone().requires_grad_()
+    args = (xf, vf, m, frame, grid.origin, grid.target_density, case["dt"], case["free"], grid.cell_size,
+            grid.resolution, grid.capacity, *solve_args(grid), grid.active_capacity)
+    torch.library.opcheck(torch.ops.ams_torch.hair_hair_grid.default, args)
+    x1, v1, _ = grid_op(*args)
+    assert x1.requires_grad and v1.requires_grad

@@ -11,7 +11,7 @@ block-sparse grid of :mod:`.sparse` (a pool of K blocks of 4³ cells per scene; 
   unless ``require_native`` asks for an error instead;
 * ``register_fake``: shapes for ``torch.compile`` / meta tensors. No autograd formula: the
   stage calls these ops when nothing requires grad, or in a gradient frame of a native simulator
-  inside ``stage._NativeForwardRecomputedAdjoint`` (forward only: its backward recomputes the grid
+  inside ``stage.grid_op`` (the differentiable grid op: its backward recomputes the grid
   and runs the native adjoints ``p2g_adjoint`` / ``pressure_adjoint`` / ``g2p_adjoint``,
   ``csrc/grid/grid_adjoint.h``).
 

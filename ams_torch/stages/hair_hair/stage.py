@@ -14,7 +14,7 @@ from ams_torch.stages.hair_hair.native import NATIVE_DTYPES, g2p, native_availab
 from ams_torch.stages.hair_hair.sparse import g2p_sparse, p2g_sparse, pressure_sparse
 from ams_torch.stages.hair_hair.transfer import scene_frame, to_head
 
-__all__ = ["BACKENDS", "hair_hair_stage", "make_stage"]
+__all__ = ["BACKENDS", "hair_hair_stage", "make_stage", "grid_op"]
 
 BACKENDS = ("auto", "native", "torch")
 
@@ -87,36 +87,103 @@ def _use_native(backend: str, tensors, dtype) -> bool:
     return not grad and dtype in NATIVE_DTYPES
 
 
-class _NativeForwardRecomputedAdjoint(torch.autograd.Function):
-    """The grid part (P2G → pressure → G2P) in a gradient frame: forward by the native kernels (no
-    graph kept); backward by the native adjoint kernels where the library has them
-    (``p2g_adjoint``, ``pressure_adjoint``, ``g2p_adjoint``: :func:`_native_adjoint`), otherwise the
-    torch definition's vector-Jacobian product recomputed from the saved inputs (``sparse.py``,
-    its sweeps by the native ``sweeps_adjoint``). Both are the derivative of the definition (the
-    forward values are the kernels', which equal it to rounding). Inputs as the stage's flattened
-    ones: xf, vf (B, P, 3), m (B, P), frame, origin, target, dt, free; ``meta`` = (h, R, K, solve,
-    active capacity). Returns x', v', overflow."""
+@torch.library.custom_op("ams_torch::hair_hair_grid", mutates_args=())
+def grid_op(xf: torch.Tensor, vf: torch.Tensor, m: torch.Tensor, frame: torch.Tensor, origin: torch.Tensor,
+            target: torch.Tensor, dt: torch.Tensor, free: torch.Tensor, cell_size: float, resolution: int,
+            capacity: int, iterations: int, omega: float, stiffness: float, pic: float,
+            active_capacity: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The grid part of the stage (P2G → pressure → G2P) as one differentiable op: the stage's
+    flattened inputs xf, vf (B, P, 3) m, m/s; m (B, P) kg; frame (B, 6, 3); origin (3,) m; target,
+    dt () tensors; free (M,) bool; the grid's settings. Returns x', v' (B, P, 3) and overflow (B,)
+    bool. Default (any device): the torch definition (``sparse.py``); CPU and CUDA: the native
+    kernels (``p2g``, ``pressure``, ``g2p``) where built. Its backward (``register_autograd``) runs
+    the native adjoint kernels (:func:`_native_adjoint`), or where a library has none the torch
+    definition's vector-Jacobian product recomputed (:func:`_recomputed_adjoint`); nothing of the
+    grid is kept between the passes: only the inputs are saved."""
+    stencils: list = []
+    solve = (iterations, omega, stiffness, pic)
+    faces, table, blocks, count = p2g_sparse(xf, vf, m, frame, origin, cell_size, resolution, capacity, stencils)
+    _, field, overflow = pressure_sparse(faces, table, blocks, count, target, dt, cell_size, resolution, *solve,
+                                         active_capacity)
+    x1, v1 = g2p_sparse(xf, vf, field, table, frame, origin, free, dt, cell_size, resolution, pic, stencils)
+    return x1.contiguous(), v1.contiguous(), overflow
 
-    @staticmethod
-    def forward(ctx, xf, vf, m, frame, origin, target, dtt, free, meta):
-        h, r, k, solve, active = meta
-        xc, vc, fc, oc = (t.detach().contiguous() for t in (xf, vf, frame, origin))
-        faces, table, blocks, count = p2g(xc, vc, m.detach().contiguous(), fc, oc, h, r, k, False)
-        _, field, overflow = pressure(faces, table, blocks, count, target, dtt, h, r, *solve, active, False)
-        x1, v1 = g2p(xc, vc, field, table, fc, oc, free, dtt, h, r, solve[3], False)
-        ctx.save_for_backward(xf, vf, m, frame, origin, target, dtt, free)
-        ctx.meta = meta
-        ctx.mark_non_differentiable(overflow)
-        return x1, v1, overflow
 
-    @staticmethod
-    def backward(ctx, gx, gv, _):
-        xf, vf, m, frame, origin, target, dtt, free = ctx.saved_tensors
-        needs = ctx.needs_input_grad[:4]
-        ns = native_adjoint_namespace(xf)
-        run = _native_adjoint if ns is not None else _recomputed_adjoint
-        res = run(ns, (xf, vf, m, frame, origin, target, dtt, free), ctx.meta, needs, gx, gv)
-        return (*res, None, None, None, None, None)
+def _grid_kernel(xf, vf, m, frame, origin, target, dt, free, cell_size, resolution, capacity, iterations, omega,
+                 stiffness, pic, active_capacity):
+    xc, vc, fc, oc = (t.detach().contiguous() for t in (xf, vf, frame, origin))
+    solve = (iterations, omega, stiffness, pic)
+    faces, table, blocks, count = p2g(xc, vc, m.detach().contiguous(), fc, oc, cell_size, resolution, capacity, False)
+    _, field, overflow = pressure(faces, table, blocks, count, target, dt, cell_size, resolution, *solve,
+                                  active_capacity, False)
+    x1, v1 = g2p(xc, vc, field, table, fc, oc, free, dt, cell_size, resolution, pic, False)
+    return x1, v1, overflow
+
+
+grid_op.register_kernel("cpu")(_grid_kernel)
+grid_op.register_kernel("cuda")(_grid_kernel)
+
+
+@grid_op.register_fake
+def _grid_fake(xf, vf, m, frame, origin, target, dt, free, cell_size, resolution, capacity, iterations, omega,
+               stiffness, pic, active_capacity):
+    return (torch.empty_like(xf, memory_format=torch.contiguous_format),
+            torch.empty_like(vf, memory_format=torch.contiguous_format),
+            torch.empty(xf.shape[0], dtype=torch.bool, device=xf.device))
+
+
+def _grid_setup(ctx, inputs, output):
+    xf, vf, m, frame, origin, target, dt, free, h, r, k, iterations, omega, stiffness, pic, active = inputs
+    ctx.save_for_backward(xf, vf, m, frame, origin, target, dt, free)
+    ctx.meta = (h, r, k, (iterations, omega, stiffness, pic), active)
+
+
+@torch.library.custom_op("ams_torch::hair_hair_grid_adjoint", mutates_args=())
+def grid_adjoint_op(xf: torch.Tensor, vf: torch.Tensor, m: torch.Tensor, frame: torch.Tensor, origin: torch.Tensor,
+                    target: torch.Tensor, dt: torch.Tensor, free: torch.Tensor, gx: torch.Tensor, gv: torch.Tensor,
+                    cell_size: float, resolution: int, capacity: int, iterations: int, omega: float,
+                    stiffness: float, pic: float,
+                    active_capacity: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The vector-Jacobian product of :func:`grid_op` by the native adjoint kernels
+    (:func:`_native_adjoint`) for the adjoints gx, gv of x', v': the adjoints of xf, vf, m and frame.
+    CPU and CUDA only, where the kernels are built (:func:`grid_op`'s backward calls it then, and
+    otherwise recomputes the torch definition's product itself)."""
+    raise NotImplementedError(f"ams_torch::hair_hair_grid_adjoint: no native kernels for {xf.device.type}")
+
+
+def _grid_adjoint_kernel(xf, vf, m, frame, origin, target, dt, free, gx, gv, cell_size, resolution, capacity,
+                         iterations, omega, stiffness, pic, active_capacity):
+    ns = native_adjoint_namespace(xf)
+    if ns is None:
+        raise RuntimeError("ams_torch::hair_hair_grid_adjoint: the native grid adjoint kernels are not built")
+    meta = (cell_size, resolution, capacity, (iterations, omega, stiffness, pic), active_capacity)
+    return tuple(_native_adjoint(ns, (xf, vf, m, frame, origin, target, dt, free), meta, gx, gv))
+
+
+grid_adjoint_op.register_kernel("cpu")(_grid_adjoint_kernel)
+grid_adjoint_op.register_kernel("cuda")(_grid_adjoint_kernel)
+
+
+@grid_adjoint_op.register_fake
+def _grid_adjoint_fake(xf, vf, m, frame, *rest):
+    return tuple(torch.empty_like(t, memory_format=torch.contiguous_format) for t in (xf, vf, m, frame))
+
+
+def _grid_backward(ctx, gx, gv, _overflow):
+    xf, vf, m, frame, origin, target, dtt, free = ctx.saved_tensors
+    h, r, k, solve, active = ctx.meta
+    needs = ctx.needs_input_grad[:4]
+    if native_adjoint_namespace(xf) is None:
+        res = _recomputed_adjoint((xf, vf, m, frame, origin, target, dtt, free), ctx.meta, needs, gx, gv)
+    else:
+        gx = torch.zeros_like(xf) if gx is None else gx.contiguous()
+        gv = torch.zeros_like(vf) if gv is None else gv.contiguous()
+        grads = grid_adjoint_op(xf, vf, m, frame, origin, target, dtt, free, gx, gv, h, r, k, *solve, active)
+        res = [g if n else None for g, n in zip(grads, needs)]
+    return (*res,) + (None,) * 12
+
+
+grid_op.register_autograd(_grid_backward, setup_context=_grid_setup)
 
 
 def native_adjoint_namespace(x: torch.Tensor):
@@ -131,7 +198,7 @@ def native_adjoint_namespace(x: torch.Tensor):
     return ns if ns is not None and hasattr(ns, "pressure_adjoint") else None
 
 
-def _recomputed_adjoint(ns, saved, meta, needs, gx, gv):
+def _recomputed_adjoint(saved, meta, needs, gx, gv):
     """The torch definition's vector-Jacobian product (autograd on ``sparse.py``, recomputed)."""
     xf, vf, m, frame, origin, target, dtt, free = saved
     h, r, k, solve, active = meta
@@ -150,53 +217,53 @@ def _recomputed_adjoint(ns, saved, meta, needs, gx, gv):
     return [torch.zeros_like(t) if (n and g is None) else g for g, n, t in zip(res, needs, leaves)]
 
 
-def _native_adjoint(ns, saved, meta, needs, gx, gv):
-    """The grid part's vector-Jacobian product by the native adjoint kernels.
+def _native_adjoint(ns, saved, meta, gx, gv):
+    """The grid part's vector-Jacobian product by the native adjoint kernels: the adjoints of xf, vf,
+    m and frame for gx, gv (B, P, 3).
 
-    The change of frame (``transfer.to_head``) is differentiated by autograd on its torch
-    definition; in the head frame the kernels recompute P2G (native ``p2g`` with the identity
-    frame, so its stencils are those of the adjoints) and the pressure's field, then run the
-    adjoints of G2P (FLIP/PIC blend; ``g2p_adjoint``), of the pressure (the face field, the
-    sweeps, the cell terms; ``pressure_adjoint``) and of P2G (``p2g_adjoint``). The rotation back
-    to the world (``transfer.apply_change``) is differentiated here: x' = x + R (dt Δv),
-    v' = v + R Δv with Δv zero for pinned particles."""
+    In the head frame the kernels recompute P2G (native ``p2g`` with the identity frame, so its
+    stencils are those of the adjoints) and the pressure's field, then run the adjoints of G2P
+    (FLIP/PIC blend; ``g2p_adjoint``), of the pressure (the face field, the sweeps, the cell terms;
+    ``pressure_adjoint``) and of P2G (``p2g_adjoint``). The changes of frame around them are
+    differentiated here, written out (a few elementwise operations per particle; no autograd, so
+    this runs inside an op's kernel): into the head frame (``transfer.to_head``: xl = Rᵀ (x − T),
+    vl = Rᵀ (v − V − W × (x − T))) and back (``transfer.apply_change``: x' = x + R (dt Δv),
+    v' = v + R Δv, Δv zero for pinned particles)."""
     xf, vf, m, frame, origin, target, dtt, free = saved
     h, r, k, solve, active = meta
     iterations, omega, stiffness, pic = solve
-    gx = torch.zeros_like(xf) if gx is None else gx
-    gv = torch.zeros_like(vf) if gv is None else gv
-    leaves = [t.detach().requires_grad_(n) for t, n in zip((xf, vf, frame), (needs[0], needs[1], needs[3]))]
-    with torch.enable_grad():
-        xl, vl = to_head(leaves[2], leaves[0], leaves[1])
-    xld, vld = xl.detach().contiguous(), vl.detach().contiguous()
-    md, oc = m.detach().contiguous(), origin.contiguous()
+    rot, trans, lin, ang = frame[:, :3], frame[:, 3], frame[:, 4], frame[:, 5]
+    rel = xf - trans[:, None, :]
+    vr = vf - lin[:, None, :] - torch.cross(ang[:, None, :].expand_as(rel), rel, dim=-1)
+    xl = torch.einsum("bji,bpj->bpi", rot, rel).contiguous()
+    vl = torch.einsum("bji,bpj->bpi", rot, vr).contiguous()
+    md, oc = m.contiguous(), origin.contiguous()
     b, p = xf.shape[:2]
     ident = torch.zeros(b, 6, 3, dtype=xf.dtype, device=xf.device)
     ident[:, :3] = torch.eye(3, dtype=xf.dtype, device=xf.device)
-    faces, table, blocks, count = ns.p2g(xld, vld, md, ident, oc, h, r, k)
+    faces, table, blocks, count = ns.p2g(xl, vl, md, ident, oc, h, r, k)
     _, field, _ = ns.pressure(faces, table, blocks, count, target, dtt, h, r, iterations, omega, stiffness, pic,
                               active)
-    rot = frame.detach()[:, :3]
     world = dtt * gx + gv  # adjoint of R Δv
     free_p = free.to(device=xf.device, dtype=torch.bool).repeat(p // free.shape[0])[None, :, None]
     g_dv = torch.where(free_p, torch.einsum("bij,bpi->bpj", rot, world), torch.zeros_like(world)).contiguous()
-    g_xl2, g_vl2, g_field, dv = ns.g2p_adjoint(xld, vld, field, table, oc, g_dv, h, r, pic)
+    g_xl2, g_vl2, g_field, dv = ns.g2p_adjoint(xl, vl, field, table, oc, g_dv, h, r, pic)
     g_faces = ns.pressure_adjoint(faces, table, blocks, count, target, dtt, h, r, iterations, omega, stiffness, pic,
                                   g_field)
-    g_xl1, g_vl1, g_m = ns.p2g_adjoint(xld, vld, md, oc, table, g_faces, h, r)
-    wrt = [t for t in leaves if t.requires_grad]
-    got = iter(torch.autograd.grad((xl, vl), wrt, (g_xl1 + g_xl2, g_vl1 + g_vl2), allow_unused=True)
-               if wrt else ())
-    g_x, g_v, g_frame = (next(got) if t.requires_grad else None for t in leaves)
-    if needs[0]:
-        g_x = gx if g_x is None else g_x + gx
-    if needs[1]:
-        g_v = gv if g_v is None else g_v + gv
-    if needs[3]:
-        g_frame = torch.zeros_like(frame) if g_frame is None else g_frame.clone()
-        dv = torch.where(free_p, dv, torch.zeros_like(dv))
-        g_frame[:, :3] += torch.einsum("bpi,bpj->bij", world, dv)
-    return [g_x, g_v, g_m if needs[2] else None, g_frame]
+    g_xl1, g_vl1, g_m = ns.p2g_adjoint(xl, vl, md, oc, table, g_faces, h, r)
+    g_xl, g_vl = g_xl1 + g_xl2, g_vl1 + g_vl2
+    # into the head frame: a = R v̄l; v̄ = a, V̄ = −Σ a, r̄el = R x̄l + W × a, W̄ = −Σ rel × a, R̄ from both
+    a = torch.einsum("bij,bpj->bpi", rot, g_vl)
+    g_rel = torch.einsum("bij,bpj->bpi", rot, g_xl) + torch.cross(ang[:, None, :].expand_as(a), a, dim=-1)
+    g_frame = torch.zeros_like(frame)
+    g_frame[:, :3] = torch.einsum("bpj,bpi->bji", rel, g_xl) + torch.einsum("bpj,bpi->bji", vr, g_vl)
+    g_frame[:, 3] = -g_rel.sum(1)
+    g_frame[:, 4] = -a.sum(1)
+    g_frame[:, 5] = -torch.cross(rel, a, dim=-1).sum(1)
+    # back to the world: x' = x + R (dt Δv), v' = v + R Δv
+    dv = torch.where(free_p, dv, torch.zeros_like(dv))
+    g_frame[:, :3] += torch.einsum("bpi,bpj->bij", world, dv)
+    return [g_rel + gx, a + gv, g_m, g_frame]
 
 
 def hair_hair_stage(grid: Optional[HairHairGrid], x: torch.Tensor, v: torch.Tensor, mass,
@@ -253,8 +320,8 @@ def hair_hair_stage(grid: Optional[HairHairGrid], x: torch.Tensor, v: torch.Tens
     solve = (cfg.pressure_iterations, cfg.jacobi_omega, cfg.volume_stiffness, pic)
     if (recompute and backend == "auto" and keeps_gradient((xf, vf, m, frame)) and x.dtype in NATIVE_DTYPES
             and native_available(x.device, x.dtype)):
-        x1, v1, overflow = _NativeForwardRecomputedAdjoint.apply(xf, vf, m, frame, origin, target, dtt, free,
-                                                                 (h, r, k, solve, grid.active_capacity))
+        x1, v1, overflow = grid_op(xf, vf, m, frame, origin.contiguous(), target, dtt, free, h, r, k, *solve,
+                                   grid.active_capacity)
     elif _use_native(backend, (xf, vf, m, frame, origin, target, dtt), x.dtype):
         strict = backend == "native"
         xc, vc, frame, origin = xf.contiguous(), vf.contiguous(), frame.contiguous(), origin.contiguous()
