@@ -277,6 +277,50 @@ def solve_args(grid):
     return cfg.pressure_iterations, cfg.jacobi_omega, cfg.volume_stiffness, 1.0 - cfg.flip
 
 
+def compare_grid_adjoints(ns_ref, ns_other, dtype, device: str = "cpu", strands=60, particles=8, resolution=12,
+                          scenes=3, bound: float = 0.0) -> None:
+    """The grid's adjoint kernels (p2g_adjoint, pressure_adjoint, g2p_adjoint) of ``ns_other`` (its
+    tensors on ``device``) against ``ns_ref``'s (CPU) on one pool (the reference's P2G table), a
+    pressure-active squeeze scene: every output within ``bound`` of the reference's largest value
+    (on the used slots). Asserts."""
+    from ams_torch.stages.hair_hair.transfer import to_head
+
+    s = squeeze_scene(dtype, strands=strands, particles=particles, resolution=resolution, scenes=scenes)
+    grid = s["grid"]
+    h, r, k = grid.cell_size, grid.resolution, grid.capacity
+    on = lambda *ts: [t.to(device) for t in ts]  # noqa: E731
+    xl, vl = (t.contiguous() for t in to_head(s["frame"], s["xf"], s["vf"]))
+    ident = torch.zeros_like(s["frame"])
+    ident[:, :3] = torch.eye(3, dtype=dtype)
+    faces, table, blocks, count = ns_ref.p2g(xl, vl, s["m"], ident, grid.origin, h, r, k)
+    solve = (grid.target_density, s["dt"], h, r, *solve_args(grid))
+    phi, field, _ = ns_ref.pressure(faces, table, blocks, count, *solve, grid.active_capacity)
+    assert float(phi[blocks >= 0].max()) > 0  # the squeeze pushes
+    gen = torch.Generator().manual_seed(7)
+    used = (blocks >= 0)[..., None, None]
+
+    def close(c, d, what):
+        d = d.cpu()
+        if c.dim() >= 4:
+            c, d = torch.where(used, c, 0), torch.where(used, d, 0)
+        assert float(c.abs().max()) > 0, what
+        assert float((c - d).abs().max()) <= bound * float(c.abs().max()), (what, float((c - d).abs().max()))
+
+    g_faces = torch.randn(faces.shape, generator=gen, dtype=dtype)
+    for name, c, d in zip(("xl", "vl", "m"), ns_ref.p2g_adjoint(xl, vl, s["m"], grid.origin, table, g_faces, h, r),
+                          ns_other.p2g_adjoint(*on(xl, vl, s["m"], grid.origin, table, g_faces), h, r)):
+        close(c, d, "p2g " + name)
+    g_field = torch.randn(field.shape, generator=gen, dtype=dtype)
+    c = ns_ref.pressure_adjoint(faces, table, blocks, count, *solve, g_field)
+    d = ns_other.pressure_adjoint(*on(faces, table, blocks, count, *solve[:2]), *solve[2:], g_field.to(device))
+    close(c.flatten(-2), d.flatten(-2), "pressure")
+    g_dv = torch.randn(xl.shape, generator=gen, dtype=dtype)
+    for name, c, d in zip(("xl", "vl", "field", "dv"),
+                          ns_ref.g2p_adjoint(xl, vl, field, table, grid.origin, g_dv, h, r, 0.05),
+                          ns_other.g2p_adjoint(*on(xl, vl, field, table, grid.origin, g_dv), h, r, 0.05)):
+        close(c, d, "g2p " + name)
+
+
 def tol(dtype, r):
     return F64_REL if dtype == torch.float64 else f32_rel(r)
 

@@ -17,9 +17,9 @@ import os
 import pytest
 import torch
 from helpers import built_native, rel
-from native_cases import (F32, F64, case_scene, expected_warp_ops, frame_args, make_case, make_colliders, make_scene,
-                          native_frame, native_system, set_pinned, solve_args, squeeze_scene, sweeps_case,
-                          tol as grid_tol, without_hollow)
+from native_cases import (F32, F64, case_scene, compare_grid_adjoints, expected_warp_ops, frame_args, make_case,
+                          make_colliders, make_scene, native_frame, native_system, set_pinned, solve_args,
+                          squeeze_scene, sweeps_case, tol as grid_tol, without_hollow)
 
 import ams_torch
 from ams_torch.sim import native
@@ -238,45 +238,8 @@ def test_cuda_grid_three_scenes(dtype):
 def test_cuda_grid_adjoints_three_scenes(dtype):
     """The grid's adjoints (p2g_adjoint, pressure_adjoint, g2p_adjoint) on the device against the CPU
     kernels on the same pool (the CPU's P2G table), 3 scenes, pressure active, 50 sweeps."""
-    from ams_torch.stages.hair_hair.transfer import to_head
-
-    s = squeeze_scene(dtype, "cpu", strands=300, particles=10, resolution=24, scenes=3)
-    grid = s["grid"]
-    h, r, k = grid.cell_size, grid.resolution, grid.capacity
-    ns_c, ns_d = built_native("cpu"), backend("grid")
-    on = lambda *ts: [t.to(DEVICE) for t in ts]  # noqa: E731
-    xl, vl = (t.contiguous() for t in to_head(s["frame"], s["xf"], s["vf"]))
-    ident = torch.zeros_like(s["frame"])
-    ident[:, :3] = torch.eye(3, dtype=dtype)
-    faces, table, blocks, count = ns_c.p2g(xl, vl, s["m"], ident, grid.origin, h, r, k)
-    solve = (grid.target_density, s["dt"], h, r, *solve_args(grid))
-    phi, field, _ = ns_c.pressure(faces, table, blocks, count, *solve, grid.active_capacity)
-    assert float(phi[blocks >= 0].max()) > 0
-    gen = torch.Generator().manual_seed(7)
-    bound = 1e-12 if dtype == F64 else 256 * EPS32
-    used = (blocks >= 0)[..., None, None]
-
-    def close(c, d, what):
-        d = d.cpu()
-        if c.dim() >= 4:
-            c, d = torch.where(used, c, 0), torch.where(used, d, 0)
-        assert float(c.abs().max()) > 0, what
-        assert float((c - d).abs().max()) <= bound * float(c.abs().max()), (what, rel(d, c))
-
-    g_faces = torch.randn(faces.shape, generator=gen, dtype=dtype)
-    for name, c, d in zip(("xl", "vl", "m"), ns_c.p2g_adjoint(xl, vl, s["m"], grid.origin, table, g_faces, h, r),
-                          ns_d.p2g_adjoint(*on(xl, vl, s["m"], grid.origin, table, g_faces), h, r)):
-        close(c, d, "p2g " + name)
-    g_field = torch.randn(field.shape, generator=gen, dtype=dtype)
-    dev_solve = (*on(grid.target_density, s["dt"]), h, r, *solve_args(grid))
-    c = ns_c.pressure_adjoint(faces, table, blocks, count, *solve, g_field)
-    d = ns_d.pressure_adjoint(*on(faces, table, blocks, count), *dev_solve, g_field.to(DEVICE))
-    close(c.flatten(-2), d.flatten(-2), "pressure")
-    g_dv = torch.randn(xl.shape, generator=gen, dtype=dtype)
-    for name, c, d in zip(("xl", "vl", "field", "dv"),
-                          ns_c.g2p_adjoint(xl, vl, field, table, grid.origin, g_dv, h, r, 0.05),
-                          ns_d.g2p_adjoint(*on(xl, vl, field, table, grid.origin, g_dv), h, r, 0.05)):
-        close(c, d, "g2p " + name)
+    compare_grid_adjoints(built_native("cpu"), backend("grid"), dtype, DEVICE, strands=300, particles=10,
+                          resolution=24, bound=1e-12 if dtype == F64 else 256 * EPS32)
 
 
 @pytest.mark.parametrize("dtype", [F64, F32])

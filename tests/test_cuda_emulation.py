@@ -30,8 +30,9 @@ from __future__ import annotations
 import pytest
 import torch
 from helpers import built_native, rel
-from native_cases import (FRAME_CASES, case_scene, expected_warp_ops, frame_args, make_case, native_frame,
-                          native_system, solve_args, squeeze_scene, strand_system, sweeps_case, tol as grid_tol)
+from native_cases import (FRAME_CASES, case_scene, compare_grid_adjoints, expected_warp_ops, frame_args, make_case,
+                          native_frame, native_system, solve_args, squeeze_scene, strand_system, sweeps_case,
+                          tol as grid_tol)
 
 from ams_torch.sim import native
 from ams_torch.native import build as _native
@@ -283,40 +284,7 @@ def test_grid_adjoints(cpu, emu, emu_env, dtype, schedule):
     against the CPU kernels on the same pool (the CPU's P2G table), 3 scenes, pressure active."""
     if schedule != "forward":
         emu_env(**SCHEDULES[schedule])
-    s = squeeze_scene(dtype, strands=60, particles=8, resolution=12, scenes=3)
-    grid = s["grid"]
-    h, r, k = grid.cell_size, grid.resolution, grid.capacity
-    ns_c, ns_e = cpu["cpu"], emu["cuda_emu"]
-    from ams_torch.stages.hair_hair.transfer import to_head
-
-    xl, vl = (t.contiguous() for t in to_head(s["frame"], s["xf"], s["vf"]))
-    ident = torch.zeros_like(s["frame"])
-    ident[:, :3] = torch.eye(3, dtype=dtype)
-    faces, table, blocks, count = ns_c.p2g(xl, vl, s["m"], ident, grid.origin, h, r, k)
-    solve = (grid.target_density, s["dt"], h, r, *solve_args(grid))
-    phi, field, _ = ns_c.pressure(faces, table, blocks, count, *solve, grid.active_capacity)
-    assert float(phi[blocks >= 0].max()) > 0
-    gen = torch.Generator().manual_seed(7)
-    bound = 1e-12 if dtype == F64 else 256 * EPS32
-    used = (blocks >= 0)[..., None, None]
-
-    def close(c, e, what):
-        c, e = torch.where(used, c, 0) if c.dim() >= 4 else c, torch.where(used, e, 0) if e.dim() >= 4 else e
-        assert float(c.abs().max()) > 0, what
-        assert float((c - e).abs().max()) <= bound * float(c.abs().max()), (what, rel(e, c))
-
-    g_faces = torch.randn(faces.shape, generator=gen, dtype=dtype)
-    for name, c, e in zip(("xl", "vl", "m"), ns_c.p2g_adjoint(xl, vl, s["m"], grid.origin, table, g_faces, h, r),
-                          ns_e.p2g_adjoint(xl, vl, s["m"], grid.origin, table, g_faces, h, r)):
-        close(c, e, "p2g " + name)
-    g_field = torch.randn(field.shape, generator=gen, dtype=dtype)
-    c = ns_c.pressure_adjoint(faces, table, blocks, count, *solve, g_field)
-    e = ns_e.pressure_adjoint(faces, table, blocks, count, *solve, g_field)
-    close(c.flatten(-2), e.flatten(-2), "pressure")
-    g_dv = torch.randn(xl.shape, generator=gen, dtype=dtype)
-    for name, c, e in zip(("xl", "vl", "field", "dv"), ns_c.g2p_adjoint(xl, vl, field, table, grid.origin, g_dv, h, r, 0.05),
-                          ns_e.g2p_adjoint(xl, vl, field, table, grid.origin, g_dv, h, r, 0.05)):
-        close(c, e, "g2p " + name)
+    compare_grid_adjoints(cpu["cpu"], emu["cuda_emu"], dtype, bound=1e-12 if dtype == F64 else 256 * EPS32)
 
 
 @pytest.mark.parametrize("dtype", [F64, F32])

@@ -35,8 +35,10 @@
 #include <tuple>
 #include <vector>
 
+#include "grid/bits.h"
 #include "grid/grid.h"
 #include "grid/grid_adjoint.h"
+#include "grid/grid_adjoint_binding.h"
 #include "grid/sweeps_cpu.h"
 
 namespace ams_torch {
@@ -47,15 +49,6 @@ constexpr int64_t kParticleGrain = 512;
 constexpr int64_t kSlotGrain = 16;
 constexpr int64_t kSlab = 4; // cells per x-slab of the scatter's colouring (as grid_cpu.cpp)
 
-int bit_count(uint64_t bits) {
-#if defined(__GNUC__)
-  return __builtin_popcountll(bits);
-#else
-  int n = 0;
-  for (; bits; bits &= bits - 1) ++n;
-  return n;
-#endif
-}
 
 void check_float(const char* op, const at::Tensor& t, const char* name, at::ScalarType dtype) {
   TORCH_CHECK(t.device().is_cpu() && t.scalar_type() == dtype, "ams_torch_cpu::", op, ": ", name,
@@ -247,7 +240,7 @@ void pressure_adjoint_impl(const T* faces, const int32_t* table, const int32_t* 
     std::vector<uint8_t> awake(static_cast<size_t>(U), 0);
     for (int64_t u = 0; u < U; ++u)
       for (uint64_t bits = active[u]; bits && !awake[u]; bits &= bits - 1)
-        awake[u] = entries[size_t((u * kBlockCells + __builtin_ctzll(bits)) * kEntry)] >= T(0);
+        awake[u] = entries[size_t((u * kBlockCells + lowest_bit(bits)) * kEntry)] >= T(0);
     std::vector<int64_t> wake;
     for (int64_t u = 0; u < U; ++u)
       if (awake[u]) wake.push_back(u);
@@ -262,7 +255,7 @@ void pressure_adjoint_impl(const T* faces, const int32_t* table, const int32_t* 
           const int64_t u = wake[size_t(i)], b = scene[u], slot = u - first[b];
           bool any = false;
           for (uint64_t bits = active[u]; bits; bits &= bits - 1) {
-            const int l = __builtin_ctzll(bits);
+            const int l = lowest_bit(bits);
             const T t = sweep_cell(src + b * K * kBlockCells, slot, l, nbr.data() + 6 * u,
                                    entries.data() + (u * kBlockCells + l) * kEntry, q.one_minus_omega);
             dst[(b * K + slot) * kBlockCells + l] = t;
@@ -271,30 +264,18 @@ void pressure_adjoint_impl(const T* faces, const int32_t* table, const int32_t* 
           live[u] = any;
         }
       });
-      for (int64_t i = 0; i < n; ++i) {
-        const int64_t u = wake[size_t(i)];
-        if (!live[u]) continue;
-        for (int d = 0; d < 6; ++d) {
-          const int32_t sl = nbr[6 * u + d];
-          if (sl < 0) continue;
-          const int64_t w = first[scene[u]] + sl;
-          if (!awake[w]) {
-            awake[w] = 1;
-            wake.push_back(w);
-          }
-        }
-      }
+      wake_neighbours(wake, n, live, awake, nbr.data(), first.data(), scene.data());
     }
     for (int64_t u = 0; u < U; ++u) listed[u] = awake[u] ? active[u] : 0;
   }
   // list of those slots' active cells in pool order: list index of (u, l) = off[u] + rank of l in listed[u]
   std::vector<int64_t> off(size_t(U + 1), 0);
-  for (int64_t u = 0; u < U; ++u) off[u + 1] = off[u] + bit_count(listed[u]);
+  for (int64_t u = 0; u < U; ++u) off[u + 1] = off[u] + popcount(listed[u]);
   const int64_t A = off[U], n1 = A + 1; // slot A: a zero that stays zero
   const auto list_index = [&](int64_t u, int l) -> int64_t {
     const uint64_t bits = listed[u];
     if (!((bits >> l) & 1)) return -1;
-    return off[u] + bit_count(bits & ((uint64_t(1) << l) - 1));
+    return off[u] + popcount(bits & ((uint64_t(1) << l) - 1));
   };
   std::vector<T> phi_pool(size_t(B * K * kBlockCells), T(0)); // φ on the used slots (0 off the active cells)
   std::vector<T> cell_g(size_t(A * 12)); // per active cell: adjoints of its six faces' mass, then momentum
@@ -305,7 +286,7 @@ void pressure_adjoint_impl(const T* faces, const int32_t* table, const int32_t* 
       for (int64_t u = u0; u < u1; ++u) {
         const int64_t b = scene[u], slot = u - first[b];
         for (uint64_t bits = listed[u]; bits; bits &= bits - 1) {
-          const int l = __builtin_ctzll(bits);
+          const int l = lowest_bit(bits);
           const int64_t i = list_index(u, l);
           const T* e = entries.data() + (u * kBlockCells + l) * kEntry;
           src[size_t(i)] = e[0];
@@ -333,7 +314,7 @@ void pressure_adjoint_impl(const T* faces, const int32_t* table, const int32_t* 
         const T* gfs = g_field + b * pool;
         T* ps = phi_pool.data() + b * K * kBlockCells;
         for (uint64_t bits = listed[u]; bits; bits &= bits - 1) {
-          const int l = __builtin_ctzll(bits);
+          const int l = lowest_bit(bits);
           const int64_t i = list_index(u, l);
           ps[slot * kBlockCells + l] = phi_l[size_t(i)];
           T acc = T(0);
@@ -355,7 +336,7 @@ void pressure_adjoint_impl(const T* faces, const int32_t* table, const int32_t* 
         const int64_t b = scene[u], slot = u - first[b];
         const T* fs = faces + b * pool * 2;
         for (uint64_t bits = listed[u]; bits; bits &= bits - 1) {
-          const int l = __builtin_ctzll(bits);
+          const int l = lowest_bit(bits);
           const int64_t i = list_index(u, l);
           T mass[6], mom[6], g_inv[6];
           cell_faces(fs, slot, l, nbr.data() + 6 * u, mass, mom);
@@ -441,13 +422,9 @@ at::Tensor pressure_adjoint_cpu(const at::Tensor& faces, const at::Tensor& table
 } // namespace ams_torch
 
 TORCH_LIBRARY_FRAGMENT(ams_torch_cpu, m) {
-  m.def("p2g_adjoint(Tensor xl, Tensor vl, Tensor m, Tensor origin, Tensor table, Tensor g_faces, float cell_size, "
-        "int resolution) -> (Tensor, Tensor, Tensor)");
-  m.def("g2p_adjoint(Tensor xl, Tensor vl, Tensor field, Tensor table, Tensor origin, Tensor g_dv, float cell_size, "
-        "int resolution, float pic) -> (Tensor, Tensor, Tensor, Tensor)");
-  m.def("pressure_adjoint(Tensor faces, Tensor table, Tensor blocks, Tensor count, Tensor target, Tensor dt, "
-        "float cell_size, int resolution, int iterations, float omega, float stiffness, float pic, Tensor g_field) "
-        "-> Tensor");
+  m.def(ams_torch::grid::kP2GAdjointSchema);
+  m.def(ams_torch::grid::kG2PAdjointSchema);
+  m.def(ams_torch::grid::kPressureAdjointSchema);
 }
 
 TORCH_LIBRARY_IMPL(ams_torch_cpu, CPU, m) {

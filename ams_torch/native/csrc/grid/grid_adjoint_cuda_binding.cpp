@@ -13,6 +13,7 @@
 #include <tuple>
 
 #include "grid/grid.h"
+#include "grid/grid_adjoint_binding.h"
 #include "grid/grid_adjoint_cuda.h"
 
 namespace ams_torch {
@@ -164,13 +165,9 @@ at::Tensor pressure_adjoint_cuda_op(const at::Tensor& faces, const at::Tensor& t
 } // namespace ams_torch
 
 TORCH_LIBRARY_FRAGMENT(ams_torch_cuda, m) {
-  m.def("p2g_adjoint(Tensor xl, Tensor vl, Tensor m, Tensor origin, Tensor table, Tensor g_faces, float cell_size, "
-        "int resolution) -> (Tensor, Tensor, Tensor)");
-  m.def("g2p_adjoint(Tensor xl, Tensor vl, Tensor field, Tensor table, Tensor origin, Tensor g_dv, float cell_size, "
-        "int resolution, float pic) -> (Tensor, Tensor, Tensor, Tensor)");
-  m.def("pressure_adjoint(Tensor faces, Tensor table, Tensor blocks, Tensor count, Tensor target, Tensor dt, "
-        "float cell_size, int resolution, int iterations, float omega, float stiffness, float pic, Tensor g_field) "
-        "-> Tensor");
+  m.def(ams_torch::grid::kP2GAdjointSchema);
+  m.def(ams_torch::grid::kG2PAdjointSchema);
+  m.def(ams_torch::grid::kPressureAdjointSchema);
 }
 
 TORCH_LIBRARY_IMPL(ams_torch_cuda, CUDA, m) {

@@ -34,6 +34,7 @@
 #include <vector>
 
 #include "common/thread_scratch.h"
+#include "grid/bits.h"
 #include "grid/grid.h"
 #include "grid/grid_simd.h"
 
@@ -77,19 +78,6 @@ void set_mark(uint8_t* p) {
 #endif
 }
 
-int lowest_bit(uint64_t bits) { // bits != 0
-#if defined(__GNUC__)
-  return __builtin_ctzll(bits);
-#else
-  int l = 0;
-  while (!(bits & 1)) {
-    bits >>= 1;
-    ++l;
-  }
-  return l;
-#endif
-}
-
 // Bit l: the three lower faces of cell l of `slot` (in the block itself) have mass > eps, which
 // every active cell needs (the cheap part of grid.h's cell_entry test).
 template <class T>
@@ -104,16 +92,6 @@ uint64_t lower_faces_massive(const T* faces, int64_t slot, T eps) {
     bits |= uint64_t(all) << l;
   }
   return bits;
-}
-
-int popcount(uint64_t bits) {
-#if defined(__GNUC__)
-  return __builtin_popcountll(bits);
-#else
-  int n = 0;
-  for (; bits; bits &= bits - 1) ++n;
-  return n;
-#endif
 }
 
 void check_common(const char* op, const at::Tensor& t, const char* name, at::ScalarType dtype) {
@@ -430,19 +408,7 @@ void pressure_impl(const T* faces, const int32_t* table, const int32_t* blocks, 
           live[u] = any;
         }
       });
-      for (int64_t i = 0; i < n; ++i) { // wake the neighbours of the slots that hold phi
-        const int64_t u = list[i];
-        if (!live[u]) continue;
-        for (int d = 0; d < 6; ++d) {
-          const int32_t s = nbr[6 * u + d];
-          if (s < 0) continue;
-          const int64_t w = first[scene[u]] + s;
-          if (!awake[w]) {
-            awake[w] = 1;
-            list.push_back(w);
-          }
-        }
-      }
+      wake_neighbours(list, n, live, awake, nbr.data(), first.data(), scene.data()); // of the slots that hold phi
     }
   }
   const T* phi = iterations % 2 == 0 ? phi_a : phi_b;
