@@ -310,6 +310,19 @@ def test_finish_and_yield_adjoints(cpu, emu, emu_env, dtype):
         assert float((c - e).abs().max()) <= bound * float(c.abs().max()), rel(e, c)
 
 
+def test_sweeps_adjoint_tells_deterministic_mode(emu):
+    """The CUDA sweeps' adjoint scatters by float atomics: under torch.use_deterministic_algorithms its
+    binding raises (sparse._sweeps_namespace takes the torch definition there on CUDA)."""
+    src, coef, w, nbr, gout = sweeps_case(200, 3, F64)
+    before = torch.are_deterministic_algorithms_enabled()
+    torch.use_deterministic_algorithms(True)
+    try:
+        with pytest.raises(RuntimeError, match="sweeps_adjoint"):
+            emu["cuda_emu"].sweeps_adjoint(src, coef, w, nbr, 3, 0.6, gout)
+    finally:
+        torch.use_deterministic_algorithms(before)
+
+
 def test_grid_p2g_tells_deterministic_mode(emu):
     """The P2G kernel's float atomics sum in a varying order: under torch.use_deterministic_algorithms
     the binding raises (alertNotDeterministic); the registered op takes the torch definition there on CUDA."""

@@ -396,9 +396,13 @@ class _Sweeps(torch.autograd.Function):
 
 
 def _sweeps_namespace(src: torch.Tensor):
-    """The native library holding the sweeps' kernels for ``src``'s device and dtype, or None."""
+    """The native library holding the sweeps' kernels for ``src``'s device and dtype, or None (also on
+    CUDA under torch's deterministic mode: the CUDA adjoint's scatter is atomicAdd, in a varying
+    order; the torch definition's written-out product, ``_Sweeps``, instead)."""
     from ams_torch.native.dispatch import native_namespace
 
+    if src.is_cuda and torch.are_deterministic_algorithms_enabled():
+        return None
     return native_namespace("grid", src)
 
 

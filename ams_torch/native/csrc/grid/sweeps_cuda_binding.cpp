@@ -2,6 +2,7 @@
 // `sweeps_adjoint` (schemas in sweeps_binding.h). Built only against a CUDA torch; the kernels are in
 // sweeps_cuda.cu. Current CUDA stream of the inputs' device, workspace from torch's caching
 // allocator, no host synchronisation.
+#include <ATen/Context.h>
 #include <ATen/Dispatch.h>
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
@@ -45,6 +46,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> sweeps_adjoint_cuda_op(const at::
   constexpr const char* op = "ams_torch_cuda::sweeps_adjoint";
   const SweepsInputs in = check_sweeps_inputs(op, src, coef, w, nbr, iterations, &g);
   TORCH_CHECK(in.src.is_cuda(), op, ": CUDA tensors expected");
+  at::globalContext().alertNotDeterministic("ams_torch_cuda::sweeps_adjoint (float atomicAdd in the scatter)");
   const c10::cuda::CUDAGuard guard(in.src.device());
   at::Tensor g_src = at::zeros({in.slots}, in.src.options()), g_coef = at::zeros({in.slots}, in.src.options());
   at::Tensor g_w = at::zeros({kSweepDirs, in.slots}, in.src.options());
