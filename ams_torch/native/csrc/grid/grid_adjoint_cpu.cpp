@@ -39,6 +39,7 @@
 #include "grid/grid.h"
 #include "grid/grid_adjoint.h"
 #include "grid/grid_adjoint_binding.h"
+#include "grid/grid_simd.h"
 #include "grid/sweeps_cpu.h"
 
 namespace ams_torch {
@@ -84,11 +85,76 @@ std::tuple<int64_t, int64_t, int64_t> check_particle_args(const char* op, const 
 }
 
 // ---- P2G --------------------------------------------------------------------------------------
+#if AMS_GRID_SIMD
+// Particles [q0, q0 + n) of one scene (n <= W) in SIMD lanes: grid_adjoint.h's p2g_particle_adjoint
+// lane by lane (grid_simd.h's stencils; the same operations in the same order).
+template <class T>
+void p2g_adjoint_batch(const T* xl, const T* vl, const T* m, const T* origin, T h, int64_t r, int64_t nb,
+                       const int32_t* table, const T* g_faces, int64_t q0, int n, T* g_xl, T* g_vl, T* g_m) {
+  using V = simd::VecT<T>;
+  using I = simd::IntT<T>;
+  constexpr int W = simd::Lanes<T>::W;
+  V x[3], v[3], mm;
+  for (int lane = 0; lane < W; ++lane) {
+    const int64_t q = q0 + (lane < n ? lane : n - 1);
+    for (int a = 0; a < 3; ++a) {
+      x[a][lane] = xl[3 * q + a];
+      v[a][lane] = vl[3 * q + a];
+    }
+    mm[lane] = m[q];
+  }
+  simd::Batch<T> bt;
+  simd::batch_stencil<T>(x, origin, h, r, nb, table, n, bt);
+  V g1[2][3][2] = {};
+  V gm = V{}, gv[3];
+  for (int c = 0; c < 3; ++c) {
+    V gw[8];
+    V gmom = V{};
+    const V mvc = mm * v[c];
+    for (int k = 0; k < 8; ++k) {
+      const I f = bt.face[c][k];
+      const I use = f >= 0;
+      const I at2 = (use ? f : I{}) * 2;
+      const V gmass = simd::gather(g_faces, at2, use);
+      const V gp = simd::gather(g_faces + 1, at2, use);
+      gw[k] = mm * gmass + mvc * gp;
+      gm = gm + bt.w[c][k] * gmass;
+      gmom = gmom + bt.w[c][k] * gp;
+    }
+    gm = gm + gmom * v[c];
+    gv[c] = gmom * mm;
+    simd::corner_weights_adjoint_rt<T>(c, bt.wv, gw, g1);
+  }
+  V gx[3];
+  simd::position_adjoint<T>(x, origin, h, r, g1, gx);
+  for (int lane = 0; lane < n; ++lane) {
+    const int64_t q = q0 + lane;
+    for (int a = 0; a < 3; ++a) {
+      g_xl[3 * q + a] = gx[a][lane];
+      g_vl[3 * q + a] = gv[a][lane];
+    }
+    g_m[q] = gm[lane];
+  }
+}
+#endif
+
 template <class T>
 void p2g_adjoint_impl(const T* xl, const T* vl, const T* m, const T* origin, const int32_t* table, const T* g_faces,
                       T* g_xl, T* g_vl, T* g_m, int64_t B, int64_t P, int64_t r, int64_t K, double cell_size) {
   const T h = T(cell_size);
   const int64_t nb = blocks_per_axis(r), nb3 = nb * nb * nb;
+#if AMS_GRID_SIMD
+  constexpr int W = simd::Lanes<T>::W;
+  const int64_t batches = (P + W - 1) / W;
+  at::parallel_for(0, B * batches, kParticleGrain / W, [&](int64_t t0, int64_t t1) {
+    for (int64_t t = t0; t < t1; ++t) {
+      const int64_t b = t / batches, first = (t % batches) * W;
+      p2g_adjoint_batch(xl + 3 * b * P, vl + 3 * b * P, m + b * P, origin, h, r, nb, table + b * nb3,
+                        g_faces + b * K * 3 * kBlockCells * 2, first, int(std::min<int64_t>(W, P - first)),
+                        g_xl + 3 * b * P, g_vl + 3 * b * P, g_m + b * P);
+    }
+  });
+#else
   at::parallel_for(0, B * P, kParticleGrain, [&](int64_t i0, int64_t i1) {
     for (int64_t i = i0; i < i1; ++i) {
       const int64_t b = i / P;
@@ -96,6 +162,7 @@ void p2g_adjoint_impl(const T* xl, const T* vl, const T* m, const T* origin, con
                            g_faces + b * K * 3 * kBlockCells * 2, g_xl + 3 * i, g_vl + 3 * i, g_m + i);
     }
   });
+#endif
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> p2g_adjoint_cpu(const at::Tensor& xl, const at::Tensor& vl,
@@ -128,6 +195,63 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> p2g_adjoint_cpu(const at::Tensor&
 }
 
 // ---- G2P --------------------------------------------------------------------------------------
+#if AMS_GRID_SIMD
+// The particles order[0, n) (n <= W, indices within one scene) in SIMD lanes: grid_adjoint.h's
+// g2p_particle_adjoint lane by lane (the same operations in the same order); the scatter into the
+// field's adjoint particle after particle, as the scalar loop.
+template <class T>
+void g2p_adjoint_batch(const T* xl, const T* vl, const T* field, const T* origin, T h, int64_t r, int64_t nb,
+                       const int32_t* table, T pic, const T* g_dv, const int32_t* order, int n, T* g_xl, T* g_vl,
+                       T* dv, T* g_field) {
+  using V = simd::VecT<T>;
+  using I = simd::IntT<T>;
+  constexpr int W = simd::Lanes<T>::W;
+  V x[3], v[3], g[3];
+  for (int lane = 0; lane < W; ++lane) {
+    const int64_t q = order[lane < n ? lane : n - 1];
+    for (int a = 0; a < 3; ++a) {
+      x[a][lane] = xl[3 * q + a];
+      v[a][lane] = vl[3 * q + a];
+      g[a][lane] = g_dv[3 * q + a];
+    }
+  }
+  simd::Batch<T> bt;
+  simd::batch_stencil<T>(x, origin, h, r, nb, table, n, bt);
+  V g1[2][3][2] = {};
+  V d[3], gv[3];
+  for (int c = 0; c < 3; ++c) {
+    V gw[8];
+    V ws = V{}, acc = V{};
+    for (int k = 0; k < 8; ++k) {
+      const I f = bt.face[c][k];
+      const I use = f >= 0;
+      const V fv = simd::gather(field, use ? f : I{}, use);
+      acc = acc + fv * bt.w[c][k];
+      gw[k] = g[c] * fv - pic * g[c] * v[c];
+      ws = ws + bt.w[c][k];
+    }
+    d[c] = acc - pic * ws * v[c];
+    gv[c] = -(pic * ws) * g[c];
+    simd::corner_weights_adjoint_rt<T>(c, bt.wv, gw, g1);
+  }
+  V gx[3];
+  simd::position_adjoint<T>(x, origin, h, r, g1, gx);
+  for (int lane = 0; lane < n; ++lane) {
+    const int64_t q = order[lane];
+    for (int a = 0; a < 3; ++a) {
+      g_xl[3 * q + a] = gx[a][lane];
+      g_vl[3 * q + a] = gv[a][lane];
+      dv[3 * q + a] = d[a][lane];
+    }
+    for (int c = 0; c < 3; ++c)
+      for (int k = 0; k < 8; ++k) {
+        const auto f = bt.face[c][k][lane];
+        if (f >= 0) g_field[f] += g[c][lane] * bt.w[c][k][lane];
+      }
+  }
+}
+#endif
+
 template <class T>
 void g2p_adjoint_impl(const T* xl, const T* vl, const T* field, const int32_t* table, const T* origin, const T* g_dv,
                       T* g_xl, T* g_vl, T* g_field, T* dv, int64_t B, int64_t P, int64_t r, int64_t K,
@@ -162,12 +286,20 @@ void g2p_adjoint_impl(const T* xl, const T* vl, const T* field, const int32_t* t
         const int64_t s = colour + 2 * (t % per_scene);
         const int64_t* st = start.data() + b * (slabs + 1);
         T* gf = g_field + b * pool;
+#if AMS_GRID_SIMD
+        constexpr int W = simd::Lanes<T>::W;
+        for (int64_t q = st[s]; q < st[s + 1]; q += W)
+          g2p_adjoint_batch(xl + 3 * b * P, vl + 3 * b * P, field + b * pool, origin, h, r, nb, table + b * nb3, pict,
+                            g_dv + 3 * b * P, order.data() + b * P + q, int(std::min<int64_t>(W, st[s + 1] - q)),
+                            g_xl + 3 * b * P, g_vl + 3 * b * P, dv + 3 * b * P, gf);
+#else
         const auto add = [gf](int32_t f, T value) { gf[f] += value; };
         for (int64_t q = st[s]; q < st[s + 1]; ++q) {
           const int64_t i = b * P + order[size_t(b * P + q)];
           g2p_particle_adjoint(xl + 3 * i, vl + 3 * i, field + b * pool, origin, h, r, nb, table + b * nb3, pict,
                                g_dv + 3 * i, g_xl + 3 * i, g_vl + 3 * i, dv + 3 * i, add);
         }
+#endif
       }
     });
   }

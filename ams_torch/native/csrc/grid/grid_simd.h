@@ -131,6 +131,7 @@ struct Batch {
   static constexpr int W = Lanes<T>::W;
   VecT<T> w[3][8];
   IntT<T> face[3][8];
+  VecT<T> wv[2][3][2]; // the 1-D weights [variant][axis][corner] (the adjoints read them)
 };
 
 // Corners of component C: block[e * W + lane] is the pool offset of cube block e of that lane.
@@ -196,6 +197,74 @@ inline void batch_stencil(const VecT<T> xl[3], const T* origin, T h, int64_t r, 
   batch_corners<0, T>(base, wv, first, block, bt);
   batch_corners<1, T>(base, wv, first, block, bt);
   batch_corners<2, T>(base, wv, first, block, bt);
+  for (int v = 0; v < 2; ++v)
+    for (int a = 0; a < 3; ++a)
+      for (int d = 0; d < 2; ++d) bt.wv[v][a][d] = wv[v][a][d];
+}
+
+// grid_adjoint.h's axis_stencil_slope, lane by lane: dw/dg of the two weights.
+template <class T>
+inline void axis_slope(VecT<T> g, int64_t n, int64_t r, VecT<T>& s0, VecT<T>& s1) {
+  using V = VecT<T>;
+  using I = IntT<T>;
+  const I i0 = clamped_floor<T>(g, r);
+  I b = i0 < 0 ? I{} : i0;
+  b = b > isplat<T>(n - 2) ? isplat<T>(n - 2) : b;
+  const I d = i0 - b;
+  const V one = splat<T>(T(1)), minus = splat<T>(T(-1)), zero = V{};
+  s0 = d == 0 ? minus : (d == -1 ? one : zero);
+  s1 = d == 0 ? one : (d == 1 ? minus : zero);
+}
+
+// The slopes of a batch's 1-D weights [variant][axis][corner] (grid_adjoint.h's particle_slopes).
+template <class T>
+inline void batch_slopes(const VecT<T> xl[3], const T* origin, T h, int64_t r, VecT<T> dw[2][3][2]) {
+  for (int a = 0; a < 3; ++a) {
+    const VecT<T> g = (xl[a] - origin[a]) / h;
+    axis_slope<T>(g, r + 1, r, dw[0][a][0], dw[0][a][1]);
+    axis_slope<T>(g - T(0.5), r, r, dw[1][a][0], dw[1][a][1]);
+  }
+}
+
+// grid_adjoint.h's corner_weights_adjoint for component C, lane by lane.
+template <int C, class T>
+inline void corner_weights_adjoint(const VecT<T> wv[2][3][2], const VecT<T> gw[8], VecT<T> g1[2][3][2]) {
+  constexpr int v0 = C == 0 ? 0 : 1, v1 = C == 1 ? 0 : 1, v2 = C == 2 ? 0 : 1;
+  for (int i = 0; i < 2; ++i)
+    for (int j = 0; j < 2; ++j) {
+      const VecT<T> w01 = wv[v0][0][i] * wv[v1][1][j];
+      VecT<T> g01 = VecT<T>{};
+      for (int k = 0; k < 2; ++k) {
+        const VecT<T> gk = gw[4 * i + 2 * j + k];
+        g01 = g01 + gk * wv[v2][2][k];
+        g1[v2][2][k] = g1[v2][2][k] + gk * w01;
+      }
+      g1[v0][0][i] = g1[v0][0][i] + g01 * wv[v1][1][j];
+      g1[v1][1][j] = g1[v1][1][j] + g01 * wv[v0][0][i];
+    }
+}
+
+template <class T>
+inline void corner_weights_adjoint_rt(int c, const VecT<T> wv[2][3][2], const VecT<T> gw[8], VecT<T> g1[2][3][2]) {
+  if (c == 0)
+    corner_weights_adjoint<0, T>(wv, gw, g1);
+  else if (c == 1)
+    corner_weights_adjoint<1, T>(wv, gw, g1);
+  else
+    corner_weights_adjoint<2, T>(wv, gw, g1);
+}
+
+// grid_adjoint.h's stencil_position_adjoint, lane by lane.
+template <class T>
+inline void position_adjoint(const VecT<T> xl[3], const T* origin, T h, int64_t r, const VecT<T> g1[2][3][2],
+                             VecT<T> g_xl[3]) {
+  VecT<T> dw[2][3][2];
+  batch_slopes<T>(xl, origin, h, r, dw);
+  for (int a = 0; a < 3; ++a) {
+    const VecT<T> gg = (dw[0][a][0] * g1[0][a][0] + dw[0][a][1] * g1[0][a][1]) +
+                       (dw[1][a][0] * g1[1][a][0] + dw[1][a][1] * g1[1][a][1]);
+    g_xl[a] = gg / h;
+  }
 }
 
 // The blocks the particles of a batch touch (grid.h's particle_blocks, lane by lane): per axis the
