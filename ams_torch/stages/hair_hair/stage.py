@@ -138,7 +138,7 @@ def _grid_setup(ctx, inputs, output):
     ctx.meta = (h, r, k, (iterations, omega, stiffness, pic), active)
 
 
-@torch.library.custom_op("ams_torch::hair_hair_grid_adjoint", mutates_args=())
+@torch.library.custom_op("ams_torch::hair_hair_grid_adjoint", mutates_args=(), device_types=("cpu", "cuda"))
 def grid_adjoint_op(xf: torch.Tensor, vf: torch.Tensor, m: torch.Tensor, frame: torch.Tensor, origin: torch.Tensor,
                     target: torch.Tensor, dt: torch.Tensor, free: torch.Tensor, gx: torch.Tensor, gv: torch.Tensor,
                     cell_size: float, resolution: int, capacity: int, iterations: int, omega: float,
@@ -146,22 +146,15 @@ def grid_adjoint_op(xf: torch.Tensor, vf: torch.Tensor, m: torch.Tensor, frame: 
                     active_capacity: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The vector-Jacobian product of :func:`grid_op` by the native adjoint kernels
     (:func:`_native_adjoint`) for the adjoints gx, gv of x', v': the adjoints of xf, vf, m and frame.
-    CPU and CUDA only, where the kernels are built (:func:`grid_op`'s backward calls it then, and
-    otherwise recomputes the torch definition's product itself)."""
-    raise NotImplementedError(f"ams_torch::hair_hair_grid_adjoint: no native kernels for {xf.device.type}")
-
-
-def _grid_adjoint_kernel(xf, vf, m, frame, origin, target, dt, free, gx, gv, cell_size, resolution, capacity,
-                         iterations, omega, stiffness, pic, active_capacity):
+    CPU and CUDA only (the op has no other implementation): :func:`grid_op`'s backward calls it
+    where :func:`native_adjoint_namespace` finds the kernels, and otherwise recomputes the torch
+    definition's product itself (autograd, which does not record inside an op's kernel)."""
     ns = native_adjoint_namespace(xf)
     if ns is None:
-        raise RuntimeError("ams_torch::hair_hair_grid_adjoint: the native grid adjoint kernels are not built")
+        raise RuntimeError("ams_torch::hair_hair_grid_adjoint: called without the native grid adjoint kernels "
+                           "(grid_op's backward checks native_adjoint_namespace first)")
     meta = (cell_size, resolution, capacity, (iterations, omega, stiffness, pic), active_capacity)
     return tuple(_native_adjoint(ns, (xf, vf, m, frame, origin, target, dt, free), meta, gx, gv))
-
-
-grid_adjoint_op.register_kernel("cpu")(_grid_adjoint_kernel)
-grid_adjoint_op.register_kernel("cuda")(_grid_adjoint_kernel)
 
 
 @grid_adjoint_op.register_fake
