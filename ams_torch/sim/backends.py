@@ -146,9 +146,19 @@ def _collide(ns, device) -> None:
     probes.close(got[1], want[1], "collide (v)")
 
 
+def _check_adjoint(what: str, loss, ad: float, h: float) -> None:
+    """Raise unless the adjoint's directional derivative ``ad`` equals the central difference
+    (loss(h) − loss(−h)) / 2h of the torch definition, ``loss(t)`` the loss at t along the
+    direction, to 1e-6 relative. No autograd: a library may be built, and probed, inside another
+    op's kernel, below autograd."""
+    fd = (loss(h) - loss(-h)) / (2 * h)
+    if not abs(ad - fd) <= 1e-6 * max(abs(fd), 1e-30):
+        raise AssertionError(f"{what}: directional derivative {ad!r}, central difference of the torch definition "
+                             f"{fd!r}")
+
+
 def _collide_adjoint(ns, device) -> None:
-    """The adjoint against a central difference of the torch definition along one direction (no
-    autograd: a library may be built, and probed, inside another op's kernel, below autograd)."""
+    """The collision stage's adjoint along one direction of x and v (:func:`_check_adjoint`)."""
     model, config, x, v, _, pose1 = _tiny(device, [SphereCollider((0.01, 0.0, 0.08), 0.02, friction=0.3)])
     x = x + torch.tensor([0.0, 0.0, -0.013], dtype=F64, device=device)  # no particle at σ = 0
     world = resolve_world_poses(list(model.colliders), pose1, None)
@@ -157,62 +167,50 @@ def _collide_adjoint(ns, device) -> None:
     got = ns.collide_adjoint(*args, gx, gv)
     dx = torch.linspace(0.5, -1.0, x.numel(), dtype=F64, device=device).reshape(x.shape)
     dv = torch.cos(torch.arange(x.numel(), dtype=F64, device=device)).reshape(x.shape)
-    h, vals = 1e-7, []
-    for sign in (1.0, -1.0):
-        xo, vo = _collisions_torch(x + sign * h * dx, v + sign * h * dv, *args[2:])
-        vals.append(float((gx * xo).sum() + (gv * vo).sum()))
-    fd = (vals[0] - vals[1]) / (2 * h)
-    ad = float((got[0] * dx).sum() + (got[1] * dv).sum())
-    if not abs(ad - fd) <= 1e-6 * max(abs(fd), 1e-30):
-        raise AssertionError(f"collide_adjoint: directional derivative {ad!r}, central difference of the torch "
-                             f"definition {fd!r}")
+
+    def loss(t):
+        xo, vo = _collisions_torch(x + t * dx, v + t * dv, *args[2:])
+        return float((gx * xo).sum() + (gv * vo).sum())
+
+    _check_adjoint("collide_adjoint", loss, float((got[0] * dx).sum() + (got[1] * dv).sum()), 1e-7)
 
 
-def _grid(ns, device) -> None:
+def _tiny_grid(device):
+    """6 particles (1 scene) in a 4³ grid of 0.125 m cells, head frame = world: x, v, m, frame, origin."""
     g = torch.Generator().manual_seed(0)
     x = (0.3 * torch.rand(1, 6, 3, generator=g, dtype=F64) + 0.1).to(device)
     v = torch.randn(1, 6, 3, generator=g, dtype=F64).to(device)
     m = torch.full((1, 6), 1e-3, dtype=F64, device=device)
     frame = torch.zeros(1, 6, 3, dtype=F64, device=device)
     frame[0, :3] = torch.eye(3, dtype=F64, device=device)
-    origin = torch.zeros(3, dtype=F64, device=device)
+    return x, v, m, frame, torch.zeros(3, dtype=F64, device=device)
+
+
+def _grid(ns, device) -> None:
+    x, v, m, frame, origin = _tiny_grid(device)
     got = ns.p2g(x, v, m, frame, origin, 0.125, 4, 8)  # 8 block slots: the sparse pool (issue 26)
     want = p2g_sparse(x, v, m, frame, origin, 0.125, 4, 8)
     # slots may be given out in another order (CUDA's atomics): compare the dense layouts
     probes.close(densify(got[0], got[2], 4), densify(want[0], want[2], 4), "p2g")
 
 
-
 def _grid_adjoint(ns, device) -> None:
-    """p2g_adjoint against a central difference of the torch definition (sparse.p2g_sparse) along
-    one direction of the positions and velocities (no autograd, as ``_collide_adjoint``)."""
-    g = torch.Generator().manual_seed(0)
-    xl = (0.3 * torch.rand(1, 6, 3, generator=g, dtype=F64) + 0.1).to(device)
-    vl = torch.randn(1, 6, 3, generator=g, dtype=F64).to(device)
-    m = torch.full((1, 6), 1e-3, dtype=F64, device=device)
-    frame = torch.zeros(1, 6, 3, dtype=F64, device=device)
-    frame[0, :3] = torch.eye(3, dtype=F64, device=device)
-    origin = torch.zeros(3, dtype=F64, device=device)
+    """p2g_adjoint along one direction of the positions and velocities (:func:`_check_adjoint`)."""
+    xl, vl, m, frame, origin = _tiny_grid(device)
     faces, table, _, _ = p2g_sparse(xl, vl, m, frame, origin, 0.125, 4, 8)
     gf = torch.cos(torch.arange(faces.numel(), dtype=F64, device=device)).reshape(faces.shape)
     got = ns.p2g_adjoint(xl, vl, m, origin, table, gf, 0.125, 4)
     dx = torch.linspace(0.5, -1.0, xl.numel(), dtype=F64, device=device).reshape(xl.shape)
     dv = torch.sin(torch.arange(xl.numel(), dtype=F64, device=device)).reshape(xl.shape)
-    h, vals = 1e-7, []
-    for sign in (1.0, -1.0):
-        f = p2g_sparse(xl + sign * h * dx, vl + sign * h * dv, m, frame, origin, 0.125, 4, 8)[0]
-        vals.append(float((gf * f).sum()))
-    fd = (vals[0] - vals[1]) / (2 * h)
-    ad = float((got[0] * dx).sum() + (got[1] * dv).sum())
-    if not abs(ad - fd) <= 1e-6 * max(abs(fd), 1e-30):
-        raise AssertionError(f"p2g_adjoint: directional derivative {ad!r}, central difference of the torch "
-                             f"definition {fd!r}")
 
+    def loss(t):
+        return float((gf * p2g_sparse(xl + t * dx, vl + t * dv, m, frame, origin, 0.125, 4, 8)[0]).sum())
+
+    _check_adjoint("p2g_adjoint", loss, float((got[0] * dx).sum() + (got[1] * dv).sum()), 1e-7)
 
 
 def _finish_adjoint(ns, device) -> None:
-    """finish_adjoint against a central difference of the torch definition (finish._finish_torch)
-    along one direction of x, v and the pose (no autograd, as ``_collide_adjoint``)."""
+    """finish_adjoint along one direction of x, v and the pose (:func:`_check_adjoint`)."""
     from ams_torch.sim.finish import _finish_torch
 
     g = torch.Generator().manual_seed(0)
@@ -223,18 +221,16 @@ def _finish_adjoint(ns, device) -> None:
     gs = torch.randn(x.shape[:-1], generator=g, dtype=F64).to(device)
     got = ns.finish_adjoint(x, v, pinned, pose, gv, gs)
     dirs = [torch.randn(t.shape, generator=g, dtype=F64).to(device) for t in (x, v, *pose)]
-    h, vals = 1e-6, []
-    for sign in (1.0, -1.0):
-        a = [t + sign * h * d for t, d in zip((x, v, *pose), dirs)]
+
+    def loss(t):
+        a = [u + t * d for u, d in zip((x, v, *pose), dirs)]
         out, speed = _finish_torch(a[0], a[1], pinned, a[2:])
-        vals.append(float((gv * out).sum() + (gs * speed).sum()))
-    fd = (vals[0] - vals[1]) / (2 * h)
+        return float((gv * out).sum() + (gs * speed).sum())
+
     g_pose = got[2].reshape(2, 3, 9).sum(1)
     ad = float((got[0] * dirs[0]).sum() + (got[1] * dirs[1]).sum()) + sum(
         float((g_pose[:, 3 * k:3 * k + 3] * dirs[2 + k]).sum()) for k in range(3))
-    if not abs(ad - fd) <= 1e-6 * max(abs(fd), 1e-30):
-        raise AssertionError(f"finish_adjoint: directional derivative {ad!r}, central difference of the torch "
-                             f"definition {fd!r}")
+    _check_adjoint("finish_adjoint", loss, ad, 1e-6)
 
 
 probes.register("frame", _frame)

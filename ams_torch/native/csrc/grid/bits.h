@@ -34,6 +34,23 @@ inline int popcount(uint64_t bits) {
 #endif
 }
 
+// The used slots of every scene, numbered u = first[b] + slot (slot < min(count[b], K)): first (B + 1)
+// and, when `scene` is given, the scene of each of the first[B] slots.
+inline std::vector<int64_t> used_slots(const int32_t* count, int64_t B, int64_t K,
+                                       std::vector<int32_t>* scene = nullptr) {
+  std::vector<int64_t> first(size_t(B + 1), 0);
+  for (int64_t b = 0; b < B; ++b) {
+    const int64_t n = count[b] < 0 ? 0 : (count[b] < K ? count[b] : K);
+    first[size_t(b + 1)] = first[size_t(b)] + n;
+  }
+  if (scene != nullptr) {
+    scene->assign(size_t(first[size_t(B)]), 0);
+    for (int64_t b = 0; b < B; ++b)
+      for (int64_t u = first[size_t(b)]; u < first[size_t(b + 1)]; ++u) (*scene)[size_t(u)] = int32_t(b);
+  }
+  return first;
+}
+
 // The Jacobi sweeps' waking (grid_cpu.cpp's pressure, grid_adjoint_cpu.cpp's pressure adjoint): after a
 // sweep over the slots list[0, n), every neighbour slot (nbr: 6 per slot, within its scene, -1 none;
 // first[scene[u]] + slot is its global index) of a slot whose phi became non-zero (live) that is

@@ -233,16 +233,14 @@ AMS_GRID_HD void cell_entry_adjoint(const T* mass, const T* mom, const PressureC
 }
 
 // Adjoint of face_field for pool face (slot, c, l) given its adjoint g: the face's own mass and
-// momentum adjoints (*g_mass, *g_mom), and *g_grad, the adjoint of (phi_hi - phi_lo) (so phi_hi
-// gets +g_grad, phi_lo -g_grad).
+// momentum adjoints (*g_mass, *g_mom). (Its phi terms go to the cells: face_phi_adjoint.)
 template <class T>
 AMS_GRID_HD void face_field_adjoint(const T* faces, const T* phi, int64_t slot, int c, int l, const int32_t* nbr,
-                                    const PressureConsts<T>& q, T g, T* g_mass, T* g_mom, T* g_grad) {
+                                    const PressureConsts<T>& q, T g, T* g_mass, T* g_mom) {
   T mf, pf;
   face_values(faces, slot, c, l, &mf, &pf);
   *g_mass = T(0);
   *g_mom = T(0);
-  *g_grad = T(0);
   if (!(mf > T(0))) return;
   const T u = pf / mf;
   *g_mom = q.pic * g / mf;
@@ -257,7 +255,6 @@ AMS_GRID_HD void face_field_adjoint(const T* faces, const T* phi, int64_t slot, 
     // du = -(grad inv)
     const T g_inv = -g * grad;
     gm = gm - g_inv * inv / mf;
-    *g_grad = -g * inv / q.h;
   }
   *g_mass = gm;
 }

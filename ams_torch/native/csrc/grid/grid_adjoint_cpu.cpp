@@ -341,12 +341,10 @@ void pressure_adjoint_impl(const T* faces, const int32_t* table, const int32_t* 
   const PressureConsts<T> q = pressure_consts<T>(cell_size, rho0, dt, omega, stiffness, pic);
   const int64_t nb = blocks_per_axis(r), nb3 = nb * nb * nb;
   const int64_t pool = K * 3 * kBlockCells; // faces of one scene
-  std::vector<int64_t> first(size_t(B + 1), 0);
-  for (int64_t b = 0; b < B; ++b) first[b + 1] = first[b] + std::min<int64_t>(std::max(count[b], 0), K);
+  std::vector<int32_t> scene; // the used slots of every scene, numbered u = first[b] + slot
+  const std::vector<int64_t> first = used_slots(count, B, K, &scene);
   const int64_t U = first[B];
   if (U == 0) return;
-  std::vector<int32_t> scene(static_cast<size_t>(U));
-  for (int64_t b = 0; b < B; ++b) std::fill(scene.begin() + first[b], scene.begin() + first[b + 1], int32_t(b));
   std::vector<int32_t> nbr(size_t(U * 6));
   std::vector<uint64_t> active(static_cast<size_t>(U), 0);
   std::vector<T> entries(size_t(iterations > 0 ? U * kBlockCells * kEntry : 0));
@@ -492,8 +490,8 @@ void pressure_adjoint_impl(const T* faces, const int32_t* table, const int32_t* 
       for (int c = 0; c < 3; ++c)
         for (int l = 0; l < kBlockCells; ++l) {
           const int64_t f = (slot * 3 + c) * kBlockCells + l;
-          T gm, gp, gg;
-          face_field_adjoint(fs, ps, slot, c, l, nu, q, gfs[f], &gm, &gp, &gg);
+          T gm, gp;
+          face_field_adjoint(fs, ps, slot, c, l, nu, q, gfs[f], &gm, &gp);
           const int64_t own = list_index(u, l);
           if (own >= 0) {
             gm = gm + cell_g[size_t(12 * own + 2 * c)];

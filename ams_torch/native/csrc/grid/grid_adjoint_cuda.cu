@@ -213,8 +213,8 @@ __global__ void adj_faces_kernel(const T* faces, const int32_t* count, const int
     if (slot >= slots_used(count, b, K)) continue; // zeroed
     const int c = int((f / kBlockCells) % 3), l = int(f % kBlockCells);
     const T* fs = faces + b * K * 3 * kBlockCells * 2;
-    T gm, gp, gg;
-    face_field_adjoint(fs, phi + b * K * kBlockCells, slot, c, l, nbr + 6 * cell, q, g_field[f], &gm, &gp, &gg);
+    T gm, gp;
+    face_field_adjoint(fs, phi + b * K * kBlockCells, slot, c, l, nbr + 6 * cell, q, g_field[f], &gm, &gp);
     const int64_t own = cell * kBlockCells + l;
     if (active[own]) {
       gm = gm + cell_g[12 * own + 2 * c];

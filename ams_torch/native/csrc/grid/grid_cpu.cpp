@@ -336,17 +336,14 @@ void pressure_impl(const T* faces, const int32_t* table, const int32_t* blocks, 
   const PressureConsts<T> q = pressure_consts<T>(cell_size, rho0, dt, omega, stiffness, pic);
   const int64_t nb = blocks_per_axis(r), nb3 = nb * nb * nb;
   const int64_t pool = K * 3 * kBlockCells; // faces of one scene
-  // the used slots of every scene, numbered u = first[b] + slot
-  std::vector<int64_t> first(size_t(B + 1), 0);
-  for (int64_t b = 0; b < B; ++b) first[b + 1] = first[b] + std::min<int64_t>(std::max(count[b], 0), K);
+  std::vector<int32_t> scene; // the used slots of every scene, numbered u = first[b] + slot
+  const std::vector<int64_t> first = used_slots(count, B, K, &scene);
   const int64_t U = first[B];
   // Slots >= count[b] of phi and field are not written (as P2G leaves them in faces): nothing
   // reads them (G2P reaches the pool through the table), and zeroing them would cost the whole
   // capacity, 4x the hair's blocks by default, every frame.
   for (int64_t b = 0; b < B; ++b) overflow[b] = count[b] > K; // the blocks P2G left out
   if (U == 0) return;
-  std::vector<int32_t> scene(static_cast<size_t>(U));
-  for (int64_t b = 0; b < B; ++b) std::fill(scene.begin() + first[b], scene.begin() + first[b + 1], int32_t(b));
   std::vector<int32_t> nbr(size_t(U * 6));
   std::vector<uint8_t> awake(static_cast<size_t>(U), 0);
   std::vector<uint64_t> active(static_cast<size_t>(U), 0); // bit l: cell l of the slot is active
